@@ -1,0 +1,183 @@
+"""File I/O shared by all stages: EXR images, JSON/YAML documents, .npy tensors.
+
+Every writer is atomic (DESIGN.md sec. 4): data goes to a temporary name in the
+destination folder and is renamed into place only when complete, so a crash
+never leaves a half-written file that looks whole. Readers turn every failure
+into an :class:`~facetsynth.errors.InputError` that names the file.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+import OpenEXR
+import yaml
+
+from .errors import InputError
+
+PathLike = str | os.PathLike
+
+
+@contextlib.contextmanager
+def atomic_path(path: PathLike, suffix: str = "") -> Iterator[Path]:
+    """Yield a temporary path beside ``path``; rename it to ``path`` on success.
+
+    On an exception the temporary file is removed and ``path`` is untouched.
+    ``suffix`` keeps the extension for writers that look at it.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{suffix}", dir=path.parent)
+    os.close(fd)
+    tmp = Path(tmp)
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+@contextlib.contextmanager
+def atomic_dir(path: PathLike, key: Any = None) -> Iterator[Path]:
+    """Yield a staging folder beside ``path``; move it to ``path`` when complete.
+
+    An existing ``path`` is replaced only after the new folder is complete.
+    On an exception the staging folder (``.NAME.partial``) is kept, so nothing
+    computed is lost: a later run with the same ``key`` (a JSON-able record of
+    the inputs and parameters) resumes in it, and writers skip the files that
+    are already there (each was written atomically, so each is whole). A
+    different key starts afresh.
+    """
+    path = Path(path)
+    staging = path.parent / f".{path.name}.partial"
+    key_file = staging / ".stage-key.json"
+    key_text = json.dumps(key, sort_keys=True, default=_json_default)
+    if staging.exists() and not (key is not None and key_file.is_file() and key_file.read_text() == key_text):
+        shutil.rmtree(staging)
+    staging.mkdir(parents=True, exist_ok=True)
+    key_file.write_text(key_text)
+    yield staging
+    key_file.unlink()
+    if path.exists():
+        shutil.rmtree(path)
+    os.replace(staging, path)
+
+
+def file_key(*paths: PathLike) -> list:
+    """(path, size, mtime) of files, to key a resumable stage on its inputs."""
+    return [(str(p), os.stat(p).st_size, os.stat(p).st_mtime_ns) for p in map(Path, paths)]
+
+
+# --- EXR ---------------------------------------------------------------------------
+
+def write_exr(path: PathLike, channels: dict[str, np.ndarray], header: dict[str, Any] | None = None,
+              half: bool = False) -> None:
+    """Write named channels to an EXR file atomically.
+
+    ``channels`` maps names to (H, W) arrays, or to (H, W, 3) arrays which
+    OpenEXR stores as ``NAME.R/G/B`` (``"RGB"`` becomes plain R, G, B).
+    ``header`` holds extra attributes (numbers, strings, 3x3 arrays).
+    ``half`` stores 16-bit floats (camera exposures), otherwise 32-bit.
+    """
+    dtype = np.float16 if half else np.float32
+    data = {name: np.ascontiguousarray(a, dtype=dtype) for name, a in channels.items()}
+    # OpenEXR adds dataWindow to the dict it is given: always pass a fresh one.
+    hdr = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    hdr.update(header or {})
+    with atomic_path(path, suffix=".exr") as tmp:
+        OpenEXR.File(hdr, data).write(str(tmp))
+
+
+def read_exr(path: PathLike) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """Read every channel of an EXR file as float32 arrays, and its header.
+
+    R, G, B come back together as ``"RGB"`` (H, W, 3); other channels by name.
+    Raises InputError naming the file when it is missing or unreadable.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "file not found")
+    try:
+        f = OpenEXR.File(str(path))
+        channels = {name: np.asarray(ch.pixels, dtype=np.float32) for name, ch in f.channels().items()}
+        header = dict(f.header())
+    except Exception as exc:  # OpenEXR raises bare RuntimeErrors on damaged files
+        raise InputError(path, f"not a readable OpenEXR image ({exc})") from None
+    return channels, header
+
+
+def read_rgb(path: PathLike, require_finite: bool = True) -> np.ndarray:
+    """Read the R, G, B channels of an EXR image as a (H, W, 3) float32 array."""
+    return read_frame(path, require_finite)[0]
+
+
+def read_frame(path: PathLike, require_finite: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Read an HDR frame: R, G, B (H, W, 3) and its ``saturated`` mask (H, W) bool.
+
+    The mask is all False when the file has no ``saturated`` channel. With
+    ``require_finite``, a NaN or Inf pixel is an InputError naming the pixel.
+    """
+    channels, _ = read_exr(path)
+    if "RGB" not in channels:
+        raise InputError(path, f"no R, G, B channels (found: {', '.join(sorted(channels))})")
+    rgb = channels["RGB"]
+    if require_finite and not np.isfinite(rgb).all():
+        bad = np.argwhere(~np.isfinite(rgb).all(axis=-1))
+        row, col = bad[0]
+        raise InputError(path, f"{len(bad)} pixel(s) are NaN or Inf (first at row {row}, col {col})")
+    saturated = channels.get("saturated", np.zeros(rgb.shape[:2], np.float32)) > 0
+    return rgb, saturated
+
+
+# --- JSON / YAML / npy -------------------------------------------------------------
+
+def write_json(path: PathLike, data: Any) -> None:
+    """Write a JSON document atomically (2-space indent, numpy scalars converted)."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=2, default=_json_default) + "\n")
+
+
+def _json_default(obj: Any) -> Any:
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+def read_json(path: PathLike) -> Any:
+    """Read a JSON document; InputError names the file on failure."""
+    path = Path(path)
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        raise InputError(path, "file not found") from None
+    except json.JSONDecodeError as exc:
+        raise InputError(path, f"not valid JSON ({exc})") from None
+
+
+def read_yaml(path: PathLike) -> Any:
+    """Read a YAML document; InputError names the file on failure."""
+    path = Path(path)
+    try:
+        return yaml.safe_load(path.read_text())
+    except FileNotFoundError:
+        raise InputError(path, "file not found") from None
+    except yaml.YAMLError as exc:
+        raise InputError(path, f"not valid YAML ({exc})") from None
+
+
+def write_npy(path: PathLike, array: np.ndarray) -> None:
+    """Write a .npy tensor atomically; later stages can memory-map it."""
+    with atomic_path(path, suffix=".npy") as tmp:
+        np.save(tmp, array)

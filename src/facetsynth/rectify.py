@@ -1,0 +1,50 @@
+"""Rectification: map camera images onto the regular sample-plane grid (paper 002 sec. 4).
+
+The sample plane z = 0 is imaged by the homography H = K [r1 r2 t]; composing
+it with the grid's (col, row) -> (x, y) matrix gives the map from rectified
+pixels to camera pixels, and OpenImageIO warps each frame with it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import OpenImageIO as oiio
+
+from .camera import Camera
+from .errors import InputError
+from .plane import PlaneGrid
+
+# OpenCV puts pixel (0, 0)'s centre at (0, 0); OpenImageIO at (0.5, 0.5).
+_CV_TO_OIIO = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
+
+
+def rectified_to_camera(camera: Camera, grid: PlaneGrid) -> np.ndarray:
+    """3x3 M with (col, row, 1)_camera ~ M (col, row, 1)_rectified (OpenCV pixel centres)."""
+    if camera.has_distortion:
+        raise InputError(None, "rectify: lens distortion is not supported yet; undistort the frames "
+                               "first and set camera/distortion to zeros")
+    return camera.plane_homography() @ grid.pixel_to_plane()
+
+
+def warp_to_plane(image: np.ndarray, camera: Camera, grid: PlaneGrid, filtername: str = "triangle") -> np.ndarray:
+    """Resample a camera image (H, W, C) onto the sample-plane grid: (rows, cols, C).
+
+    Cells whose footprint falls outside the image are 0 (see :func:`visible_cells`).
+    """
+    m = _CV_TO_OIIO @ rectified_to_camera(camera, grid) @ np.linalg.inv(_CV_TO_OIIO)
+    src_to_dst = np.linalg.inv(m)
+    src = oiio.ImageBuf(np.ascontiguousarray(image, dtype=np.float32))
+    roi = oiio.ROI(0, grid.cols, 0, grid.rows, 0, 1, 0, image.shape[-1])
+    # OIIO wants a row-vector matrix (the transpose) as float32; float64 arrays give wrong pixels.
+    dst = oiio.ImageBufAlgo.warp(src, tuple(src_to_dst.T.astype(np.float32).ravel().tolist()),
+                                 filtername=filtername, wrap="black", roi=roi)
+    if dst.has_error:
+        raise RuntimeError(f"OpenImageIO warp failed: {dst.geterror()}")
+    return dst.get_pixels(oiio.FLOAT).reshape(grid.rows, grid.cols, image.shape[-1])
+
+
+def visible_cells(camera: Camera, grid: PlaneGrid) -> np.ndarray:
+    """(rows, cols) True where a cell's centre projects inside the camera image."""
+    uv = camera.project(grid.points3d())
+    return ((uv[..., 0] >= -0.5) & (uv[..., 0] <= camera.width - 0.5)
+            & (uv[..., 1] >= -0.5) & (uv[..., 1] <= camera.height - 0.5))

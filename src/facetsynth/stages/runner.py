@@ -1,0 +1,30 @@
+"""Run a stage from a Snakemake ``script:``: logging to the rule's log, clean errors."""
+
+from __future__ import annotations
+
+import logging
+import sys
+from typing import Any, Callable
+
+from ..errors import InputError
+
+
+def run_stage(snakemake: Any, stage: Callable[..., Any], **kwargs: Any) -> None:
+    """Call ``stage(**kwargs)`` with logging sent to the rule's log file.
+
+    Bad input (InputError) ends the job with one clear line naming the file
+    and the problem, in the log and on stderr, instead of a traceback.
+    """
+    handlers: list[logging.Handler] = [logging.StreamHandler(sys.stderr)]
+    if snakemake.log:
+        handlers.append(logging.FileHandler(snakemake.log[0], mode="w"))
+        sys.stderr = open(snakemake.log[0], "a", buffering=1)  # progress bars (tqdm) go to the log
+    logging.basicConfig(level=logging.INFO, handlers=handlers, force=True,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    log = logging.getLogger(f"facetsynth.{snakemake.rule}")
+    try:
+        stage(**kwargs)
+    except InputError as exc:
+        log.error("%s", exc)
+        print(f"facetsynth {snakemake.rule}: error: {exc}", file=sys.__stderr__)
+        sys.exit(1)

@@ -1,0 +1,76 @@
+"""Camera model, sample-plane grid and rectification against known geometry."""
+
+import numpy as np
+import pytest
+from scipy.ndimage import binary_dilation
+
+from facetsynth.camera import Camera
+from facetsynth.plane import PlaneGrid
+from facetsynth.rectify import rectified_to_camera, visible_cells, warp_to_plane
+from facetsynth.errors import InputError
+
+
+@pytest.fixture
+def camera():
+    # The paper's geometry: 1.0 m away, 0.6 m above the sample centre.
+    return Camera.look_at([0.0, -0.8, 0.6], [0.0, 0.0, 0.0], 240, 160, focal_px=0.9 * 240 / 0.1)
+
+
+def test_look_at_puts_the_target_at_the_principal_point(camera):
+    np.testing.assert_allclose(camera.project(np.zeros(3)), [119.5, 79.5], atol=1e-9)
+    np.testing.assert_allclose(camera.centre, [0.0, -0.8, 0.6], atol=1e-12)
+    # +x of the world is image right; the far edge (+y) is image up.
+    right, far = camera.project(np.array([[0.01, 0, 0], [0, 0.01, 0]]))
+    assert right[0] > 119.5 and far[1] < 79.5
+
+
+def test_plane_homography_matches_projection(camera):
+    xy = np.random.default_rng(0).uniform(-0.05, 0.05, (100, 2))
+    uv1 = np.column_stack([xy, np.ones(100)]) @ camera.plane_homography().T
+    np.testing.assert_allclose(uv1[:, :2] / uv1[:, 2:], camera.project(np.column_stack([xy, np.zeros(100)])),
+                               atol=1e-9)
+
+
+def test_pixel_plane_points_invert_projection(camera):
+    xy = camera.pixel_plane_points()
+    uv = camera.project(np.concatenate([xy, np.zeros(xy.shape[:-1] + (1,))], axis=-1))
+    cc, rr = np.meshgrid(np.arange(240), np.arange(160))
+    np.testing.assert_allclose(uv, np.stack([cc, rr], -1), atol=1e-6)
+
+
+def test_plane_grid_mapping_round_trip_and_orientation():
+    grid = PlaneGrid(0.10, 0.08, cols=50, rows=40)
+    np.testing.assert_allclose(grid.to_plane(0, 0), [-0.049, 0.039])        # top-left cell centre
+    np.testing.assert_allclose(grid.to_plane(49, 39), [0.049, -0.039])      # bottom-right
+    xy = np.random.default_rng(1).uniform(-0.04, 0.04, (20, 2))
+    np.testing.assert_allclose(grid.to_plane(*grid.to_pixel(xy[:, 0], xy[:, 1]).T), xy, atol=1e-12)
+
+
+def test_warp_reproduces_a_smooth_plane_function(camera):
+    grid = PlaneGrid(0.1, 0.1, 64, 64)
+    f = lambda xy: np.stack([10 * xy[..., 0] + 1, 20 * xy[..., 1] + 3, np.sin(60 * xy[..., 0]) + 2], -1)
+    rectified = warp_to_plane(f(camera.pixel_plane_points()), camera, grid)
+    truth = f(grid.cell_centres())
+    assert visible_cells(camera, grid).all()
+    err = np.abs(rectified - truth)
+    dx, dy = grid.cell_size
+    assert err[..., 0].max() / 10 < 0.03 * dx   # position error along x, under 0.03 cells
+    assert err[..., 1].max() / 20 < 0.05 * dy   # along y (foreshortened by the 53 deg view)
+    assert err[..., 2].max() < 2e-3
+
+
+def test_cells_outside_the_image_are_reported_and_black(camera):
+    grid = PlaneGrid(0.3, 0.3, 30, 30)   # larger than the camera's field of view
+    visible = visible_cells(camera, grid)
+    assert 0 < visible.mean() < 1
+    rectified = warp_to_plane(np.ones((160, 240, 3)), camera, grid)
+    assert np.isfinite(rectified).all()
+    # Away from the image border (one cell of filter support), outside cells are black.
+    dilated = binary_dilation(visible, np.ones((5, 5), bool))
+    assert np.all(rectified[~dilated] == 0)
+
+
+def test_distorted_camera_is_refused_with_a_clear_error(camera):
+    distorted = Camera(camera.width, camera.height, camera.K, camera.R, camera.t, np.array([0.1, 0, 0, 0, 0]))
+    with pytest.raises(InputError, match="distortion"):
+        rectified_to_camera(distorted, PlaneGrid(0.1, 0.1, 8, 8))

@@ -1,0 +1,65 @@
+"""Atomic writes and clear read errors (DESIGN.md sec. 4)."""
+
+import numpy as np
+import pytest
+
+from facetsynth.errors import InputError
+from facetsynth.fileio import atomic_dir, read_exr, read_rgb, write_exr, write_json
+
+
+def test_exr_round_trip_keeps_channels_and_header(tmp_path):
+    rgb = np.random.default_rng(0).random((5, 7, 3)).astype(np.float32)
+    mask = np.eye(5, 7, dtype=np.float32)
+    write_exr(tmp_path / "a.exr", {"RGB": rgb, "saturated": mask}, {"exposure_time": 0.25, "units": "W/sr/m2"})
+    channels, header = read_exr(tmp_path / "a.exr")
+    np.testing.assert_array_equal(channels["RGB"], rgb)
+    np.testing.assert_array_equal(channels["saturated"], mask)
+    assert header["exposure_time"] == 0.25 and header["units"] == "W/sr/m2"
+    write_exr(tmp_path / "b.exr", {"RGB": np.ones((2, 3, 3))})   # another size: fresh header each time
+    assert read_rgb(tmp_path / "b.exr").shape == (2, 3, 3)
+
+
+def test_truncated_exr_is_an_error_naming_the_file(tmp_path):
+    write_exr(tmp_path / "full.exr", {"RGB": np.ones((64, 64, 3))})
+    data = (tmp_path / "full.exr").read_bytes()
+    (tmp_path / "cut.exr").write_bytes(data[: len(data) // 2])
+    with pytest.raises(InputError, match=r"cut\.exr: not a readable OpenEXR image"):
+        read_rgb(tmp_path / "cut.exr")
+
+
+def test_nan_pixels_are_an_error_naming_file_and_pixel(tmp_path):
+    rgb = np.ones((4, 4, 3), np.float32)
+    rgb[2, 3, 1] = np.nan
+    write_exr(tmp_path / "nan.exr", {"RGB": rgb})
+    with pytest.raises(InputError, match=r"nan\.exr: 1 pixel\(s\) are NaN or Inf \(first at row 2, col 3\)"):
+        read_rgb(tmp_path / "nan.exr")
+
+
+def test_failed_write_leaves_nothing_that_looks_whole(tmp_path):
+    with pytest.raises(TypeError):
+        write_json(tmp_path / "m.json", {"bad": object()})
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_atomic_dir_publishes_only_when_complete_and_resumes_after_a_crash(tmp_path):
+    out = tmp_path / "frames"
+    with pytest.raises(RuntimeError):
+        with atomic_dir(out, key={"gain": 1}) as staging:
+            (staging / "0000.exr").write_text("done")
+            raise RuntimeError("crash mid-stage")
+    assert not out.exists()
+    with atomic_dir(out, key={"gain": 1}) as staging:        # same inputs: resume, nothing lost
+        assert (staging / "0000.exr").read_text() == "done"
+        (staging / "0001.exr").write_text("new")
+    assert sorted(p.name for p in out.iterdir()) == ["0000.exr", "0001.exr"]
+    assert not (tmp_path / ".frames.partial").exists()
+
+
+def test_atomic_dir_starts_afresh_when_the_inputs_changed(tmp_path):
+    out = tmp_path / "frames"
+    with pytest.raises(RuntimeError):
+        with atomic_dir(out, key={"gain": 1}) as staging:
+            (staging / "0000.exr").write_text("stale")
+            raise RuntimeError("crash")
+    with atomic_dir(out, key={"gain": 2}) as staging:
+        assert not (staging / "0000.exr").exists()

@@ -1,0 +1,31 @@
+# capture: virtual rig, import of frames captured elsewhere, or the real rig.
+# Writes results/{sample}/capture/ (manifest.json + frames); paper 002 sec. 4.
+
+
+def capture_inputs(wildcards):
+    row = SAMPLE_SHEET[wildcards.sample]
+    inputs = {"path": row["path"]}
+    if row["source"] == "virtual":
+        inputs["rig"] = sample_rig(wildcards.sample)
+    return inputs
+
+
+rule capture:
+    input:
+        unpack(capture_inputs),
+    output:
+        directory("results/{sample}/capture"),
+    params:
+        source=lambda wc: SAMPLE_SHEET[wc.sample]["source"],
+        rig=lambda wc: sample_rig(wc.sample),
+        seed=config["seed"],
+        noise=config["virtual"]["noise"],
+    log:
+        "results/{sample}/logs/capture.log",
+    benchmark:
+        "results/{sample}/benchmarks/capture.tsv"
+    threads: 1
+    resources:
+        mem_mb=2000,
+    script:
+        "../scripts/capture.py"

@@ -1,0 +1,22 @@
+# hdr: merge each frame's exposure bracket into one scene-linear EXR (paper 002 sec. 4).
+
+
+rule hdr:
+    input:
+        "results/{sample}/capture",
+    output:
+        frames=directory("results/{sample}/hdr/frames"),
+        manifest="results/{sample}/hdr/manifest.json",
+        metrics="results/{sample}/hdr/metrics.json",
+    params:
+        floor_sigmas=config["hdr"]["floor_sigmas"],
+        saturation_margin=config["hdr"]["saturation_margin"],
+    log:
+        "results/{sample}/logs/hdr.log",
+    benchmark:
+        "results/{sample}/benchmarks/hdr.tsv"
+    threads: 1
+    resources:
+        mem_mb=2000,
+    script:
+        "../scripts/hdr.py"

@@ -1,0 +1,23 @@
+# rectify: map every HDR frame onto the regular sample-plane grid (paper 002 sec. 4).
+
+
+rule rectify:
+    input:
+        frames="results/{sample}/hdr/frames",
+        manifest="results/{sample}/hdr/manifest.json",
+    output:
+        frames=directory("results/{sample}/rectify/frames"),
+        geometry="results/{sample}/rectify/geometry.json",
+        metrics="results/{sample}/rectify/metrics.json",
+    params:
+        resolution=config["rectify"]["resolution"],
+        filter=config["rectify"]["filter"],
+    log:
+        "results/{sample}/logs/rectify.log",
+    benchmark:
+        "results/{sample}/benchmarks/rectify.tsv"
+    threads: 1
+    resources:
+        mem_mb=2000,
+    script:
+        "../scripts/rectify.py"
