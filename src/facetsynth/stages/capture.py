@@ -27,17 +27,24 @@ def run(source: str, path: str | Path, out_dir: str | Path, rig: str | Path, see
                                "(DESIGN.md sec. 7); capture with your own software and use source 'import'")
 
 
-def import_capture(path: str | Path, out_dir: str | Path) -> None:
-    """Validate a capture made elsewhere and publish its manifest with absolute frame paths.
+def check_capture(path: str | Path) -> dict:
+    """Validate a capture folder: its manifest, and every exposure file's header.
 
     Every exposure file must exist and be an image of the camera's size with
-    R, G, B channels (checked from its header); the pixels are read by ``hdr``.
+    R, G, B channels; the pixels themselves are read (and checked) by ``hdr``.
+    Returns the loaded manifest.
     """
     manifest = manifest_io.load(path)
     width, height = manifest["camera"]["width"], manifest["camera"]["height"]
     for frame in manifest["frames"]:
         for exposure in frame["exposures"]:
             _check_frame_header(exposure["file"], width, height)
+    return manifest
+
+
+def import_capture(path: str | Path, out_dir: str | Path) -> None:
+    """Validate a capture made elsewhere and publish its manifest with absolute frame paths."""
+    manifest = check_capture(path)
     log.info("imported %d frames from %s", len(manifest["frames"]), path)
     with atomic_dir(out_dir) as staging:
         manifest_io.save(staging / "manifest.json", manifest)

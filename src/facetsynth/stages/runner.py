@@ -17,7 +17,7 @@ def run_stage(snakemake: Any, stage: Callable[..., Any], **kwargs: Any) -> None:
     """
     handlers: list[logging.Handler] = [logging.StreamHandler(sys.stderr)]
     if snakemake.log:
-        handlers.append(logging.FileHandler(snakemake.log[0], mode="w"))
+        handlers = [logging.FileHandler(snakemake.log[0], mode="w")]
         sys.stderr = open(snakemake.log[0], "a", buffering=1)  # progress bars (tqdm) go to the log
     logging.basicConfig(level=logging.INFO, handlers=handlers, force=True,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
