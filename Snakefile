@@ -14,9 +14,10 @@ include: "workflow/rules/common.smk"
 include: "workflow/rules/capture.smk"
 include: "workflow/rules/hdr.smk"
 include: "workflow/rules/rectify.smk"
+include: "workflow/rules/reflectance.smk"
 
 
 rule all:
     input:
-        expand("results/{sample}/rectify/metrics.json", sample=SAMPLES),
+        expand("results/{sample}/partial_ndf/metrics.json", sample=SAMPLES),
     default_target: True

@@ -1,0 +1,70 @@
+"""What the per-point stages share: the rectified capture's geometry, tiling, truth."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..fileio import read_json
+from ..plane import PlaneGrid
+from ..scene import MaterialMaps, Scene
+
+TILE_POINTS = 256  # points per tile: bounds the memory of every per-point stage
+
+
+@dataclass(frozen=True)
+class RectifiedCapture:
+    """``rectify/geometry.json``: the grid, the points, the lights, the view."""
+
+    folder: Path
+    grid: PlaneGrid
+    visible: np.ndarray            # (P,) bool
+    light_positions: np.ndarray    # (F, 3)
+    light_intensities: np.ndarray  # (F, 3)
+    view_position: np.ndarray      # (3,) camera centre V
+    frame_files: list[Path]
+    truth_scene: Path | None
+
+    @classmethod
+    def load(cls, path: str | Path) -> "RectifiedCapture":
+        path = Path(path)
+        g = read_json(path)
+        truth = g.get("truth", {}).get("scene")
+        return cls(folder=path.parent, grid=PlaneGrid.from_dict(g["grid"]),
+                   visible=np.asarray(g["visible"], bool).ravel(),
+                   light_positions=np.array([f["light"]["position"] for f in g["frames"]], float),
+                   light_intensities=np.array([f["light"]["intensity"] for f in g["frames"]], float),
+                   view_position=np.asarray(g["view_position"], float),
+                   frame_files=[path.parent / f["file"] for f in g["frames"]],
+                   truth_scene=None if truth is None else (path.parent / truth).resolve())
+
+    @property
+    def points(self) -> np.ndarray:
+        """(P, 3) world positions of the points, row-major over the grid."""
+        return self.grid.points3d().reshape(-1, 3)
+
+    @property
+    def n_points(self) -> int:
+        return self.grid.rows * self.grid.cols
+
+    def view_directions(self, per_point: bool) -> np.ndarray:
+        """o per point (P, 3): exact per-point view, or the paper's view at the sample centre."""
+        if per_point:
+            d = self.view_position - self.points
+        else:
+            d = np.broadcast_to(self.view_position, (self.n_points, 3))
+        return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+    def truth(self) -> MaterialMaps | None:
+        """The true SVBRDF parameters at every point, for virtual captures."""
+        if self.truth_scene is None:
+            return None
+        return Scene.load(self.truth_scene).parameters(self.points[:, :2])
+
+
+def tiles(n: int, size: int = TILE_POINTS):
+    """Slices covering range(n) in tiles of ``size``."""
+    for start in range(0, n, size):
+        yield slice(start, min(start + size, n))

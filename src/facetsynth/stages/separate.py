@@ -1,0 +1,67 @@
+"""Stage ``separate``: BRDF samples (eq. 8), diffuse kd (eq. 9), the specular residual (paper 002 sec. 4)."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from ..fileio import atomic_path, read_frame, write_exr, write_json
+from ..render import light_geometry
+from ..separation import brdf_samples, diffuse_minimum, specular_residual
+from .common import RectifiedCapture, tiles
+
+log = logging.getLogger(__name__)
+
+
+def run(geometry: str | Path, kd_out: str | Path, specular_out: str | Path, valid_out: str | Path,
+        metrics_out: str | Path, threshold: float = 0.05) -> None:
+    """Per point and light: rho by eq. 8, kd = pi rho_d by eq. 9, rho~_s = rho - rho_d.
+
+    Writes ``kd`` (EXR on the rectified grid), the specular residual
+    (P, F, 3) float32 and the sample validity (P, F) as memory-mappable .npy
+    (frames are streamed in; memory does not grow with the sample size).
+    Invalid samples: saturated, or a point outside the camera's view.
+    """
+    capture = RectifiedCapture.load(geometry)
+    n_points, n_frames = capture.n_points, len(capture.frame_files)
+    points = capture.points
+    with atomic_path(specular_out, suffix=".npy") as tmp_spec, atomic_path(valid_out, suffix=".npy") as tmp_valid:
+        rho = np.lib.format.open_memmap(tmp_spec, mode="w+", dtype=np.float32, shape=(n_points, n_frames, 3))
+        valid = np.lib.format.open_memmap(tmp_valid, mode="w+", dtype=bool, shape=(n_points, n_frames))
+        for q, file in enumerate(tqdm(capture.frame_files, desc="separate: eq. 8", unit="frame")):
+            radiance, saturated = read_frame(file)
+            sample, _ = brdf_samples(radiance.reshape(-1, 1, 3), points,
+                                     capture.light_positions[q:q + 1], capture.light_intensities[q:q + 1])
+            rho[:, q] = sample[:, 0]
+            valid[:, q] = capture.visible & ~saturated.ravel()
+        kd = np.zeros((n_points, 3))
+        for tile in tqdm(list(tiles(n_points)), desc="separate: eq. 9", unit="tile"):
+            rho_tile = np.asarray(rho[tile], float)
+            radiance = _radiance(rho_tile, points[tile], capture)
+            rho_d = diffuse_minimum(rho_tile, radiance, valid[tile], threshold)
+            kd[tile] = np.pi * rho_d
+            rho[tile] = specular_residual(rho_tile, rho_d)
+        rho.flush()
+        valid.flush()
+        del rho, valid
+    write_exr(kd_out, {"RGB": kd.reshape(capture.grid.rows, capture.grid.cols, 3)},
+              {"quantity": "kd (diffuse albedo), paper 002 eq. 9"})
+
+    dark = int((kd.sum(axis=1) == 0).sum())
+    metrics = {"ground_truth": capture.truth_scene is not None, "points": n_points, "frames": n_frames,
+               "threshold": threshold, "points_without_diffuse_estimate": dark}
+    truth = capture.truth()
+    if truth is not None:
+        select = capture.visible[:, None] & (truth.kd > 0)
+        metrics["kd_median_rel_error"] = float(np.median(np.abs(kd - truth.kd)[select] / truth.kd[select]))
+        log.info("kd median relative error %.4f", metrics["kd_median_rel_error"])
+    write_json(metrics_out, metrics)
+
+
+def _radiance(rho: np.ndarray, points: np.ndarray, capture: RectifiedCapture) -> np.ndarray:
+    """I = rho (n . i) L / |P - x|^2: eq. 8 read forwards, for the threshold of eq. 9."""
+    wi, r2 = light_geometry(points[:, None, :], capture.light_positions[None])
+    return rho * (np.clip(wi[..., 2], 0, None) / r2)[..., None] * capture.light_intensities[None]

@@ -1,0 +1,72 @@
+# Reflectance stages (paper 002 sec. 4 end, sec. 5.1): per-point BRDF samples and
+# diffuse separation (eqs. 8-9), push-pull resampling onto the direction grid,
+# partial NDF with the constrained shadowing iteration (eqs. 5, 10-12).
+
+
+rule separate:
+    input:
+        frames="results/{sample}/rectify/frames",
+        geometry="results/{sample}/rectify/geometry.json",
+    output:
+        kd="results/{sample}/separate/kd.exr",
+        specular="results/{sample}/separate/specular.npy",
+        valid="results/{sample}/separate/valid.npy",
+        metrics="results/{sample}/separate/metrics.json",
+    params:
+        threshold=config["separate"]["threshold"],
+    log:
+        "results/{sample}/logs/separate.log",
+    benchmark:
+        "results/{sample}/benchmarks/separate.tsv"
+    threads: 1
+    resources:
+        mem_mb=2000,
+    script:
+        "../scripts/separate.py"
+
+
+rule resample:
+    input:
+        geometry="results/{sample}/rectify/geometry.json",
+        specular="results/{sample}/separate/specular.npy",
+        valid="results/{sample}/separate/valid.npy",
+    output:
+        slice="results/{sample}/resample/specular_slice.npy",
+        coverage="results/{sample}/resample/coverage.npy",
+        colour="results/{sample}/resample/specular_colour.npy",
+        grid="results/{sample}/resample/grid.json",
+    params:
+        n_theta=config["resample"]["n_theta"],
+        n_phi=config["resample"]["n_phi"],
+    log:
+        "results/{sample}/logs/resample.log",
+    benchmark:
+        "results/{sample}/benchmarks/resample.tsv"
+    threads: 1
+    resources:
+        mem_mb=2000,
+    script:
+        "../scripts/resample.py"
+
+
+rule partial_ndf:
+    input:
+        geometry="results/{sample}/rectify/geometry.json",
+        slice="results/{sample}/resample/specular_slice.npy",
+        coverage="results/{sample}/resample/coverage.npy",
+        grid="results/{sample}/resample/grid.json",
+    output:
+        ndf="results/{sample}/partial_ndf/ndf.npy",
+        confidence="results/{sample}/partial_ndf/confidence.npy",
+        metrics="results/{sample}/partial_ndf/metrics.json",
+    params:
+        **config["partial_ndf"],
+    log:
+        "results/{sample}/logs/partial_ndf.log",
+    benchmark:
+        "results/{sample}/benchmarks/partial_ndf.tsv"
+    threads: 1
+    resources:
+        mem_mb=3000,
+    script:
+        "../scripts/partial_ndf.py"
