@@ -38,7 +38,7 @@ def metrics(workdir: Path, sample: str, stage: str) -> dict:
 
 @pytest.fixture(scope="module")
 def demo_run(repo, tmp_path_factory):
-    """The default demo sample, noise-free, through capture -> hdr -> rectify."""
+    """The default demo sample, noise-free, through capture -> ... -> partial_ndf."""
     workdir = make_workdir(repo, tmp_path_factory.mktemp("wf"), "demo\tvirtual\tresources/scenes/demo.yaml\t\n")
     (workdir / "noise-free.yaml").write_text("virtual:\n  noise: false\n")
     done = snakemake(workdir, *NOISE_FREE)
@@ -48,15 +48,30 @@ def demo_run(repo, tmp_path_factory):
 
 def test_noise_free_demo_meets_the_accuracy_targets(demo_run):
     hdr, rectify = metrics(demo_run, "demo", "hdr"), metrics(demo_run, "demo", "rectify")
-    assert hdr["ground_truth"] and hdr["frames"] == 340
+    assert hdr["ground_truth"] and hdr["frames"] == 1360
     assert hdr["median_rel_error"] <= 0.01          # issue 2: HDR merge against the true radiance
     assert rectify["registration_error_px"] <= 0.5   # issue 2: marker registration, rectified pixels
     assert rectify["markers_found"] == 4
     assert rectify["radiance_median_rel_error"] <= 0.01
-    for stage in ("capture", "hdr", "rectify"):       # the engine records time and memory of every stage
+    for stage in ("capture", "hdr", "rectify", "separate", "resample", "partial_ndf"):   # time and memory
         assert (demo_run / f"results/demo/benchmarks/{stage}.tsv").read_text().startswith("s\th:m:s\tmax_rss")
     geometry = json.loads((demo_run / "results/demo/rectify/geometry.json").read_text())
-    assert len(geometry["frames"]) == 340 and geometry["grid"]["cols"] == 64
+    assert len(geometry["frames"]) == 1360 and geometry["grid"]["cols"] == 64
+
+
+def test_noise_free_demo_meets_the_reflectance_targets(demo_run):
+    """Issue 3: kd by eq. 9; the constrained partial NDF beats the unconstrained one (paper 002 Fig. 5)."""
+    assert metrics(demo_run, "demo", "separate")["kd_median_rel_error"] <= 0.05
+    ndf = metrics(demo_run, "demo", "partial_ndf")
+    assert ndf["view"] == "per_point" and ndf["scored_points"] > 900
+    assert ndf["ndf_rel_l2_median"] == ndf["ndf_rel_l2_median_constrained"] <= 0.15
+    assert ndf["ndf_rel_l2_median_constrained"] < ndf["ndf_rel_l2_median_unconstrained"]
+    assert ndf["ndf_rel_l2_median_per_point_view"] < ndf["ndf_rel_l2_median_centre_view"]
+    assert ndf["converged_fraction"] == 1.0
+    ndf_table = np.load(demo_run / "results/demo/partial_ndf/ndf.npy", mmap_mode="r")
+    confidence = np.load(demo_run / "results/demo/partial_ndf/confidence.npy", mmap_mode="r")
+    assert ndf_table.shape == (4096, 32, 128) and np.isfinite(ndf_table).all() and (ndf_table >= 0).all()
+    assert np.isfinite(confidence).all() and 0 <= confidence.min() and confidence.max() <= 1
 
 
 def test_forcerun_rectify_reruns_rectify_and_nothing_upstream(demo_run):
@@ -105,6 +120,8 @@ def test_import_enters_the_same_pipeline(repo, tmp_path, foreign_capture):
     assert metrics(workdir, "mine", "rectify")["ground_truth"] is False
     rectified = read_rgb(workdir / "results/mine/rectify/frames/0010.exr")
     assert rectified.shape == (64, 64, 3) and np.isfinite(rectified).all() and rectified.max() > 0
+    assert metrics(workdir, "mine", "partial_ndf")["ground_truth"] is False
+    assert np.isfinite(np.load(workdir / "results/mine/partial_ndf/ndf.npy")).all()
 
 
 @pytest.mark.parametrize("damage, message", [
