@@ -1,0 +1,126 @@
+"""Exports of a fitted StencilModel: JSON parameters and a Disney BRDF Explorer shader.
+
+JSON: angles in degrees (``phi_a_deg``), everything else as in
+:class:`facetsynth.stencil.model.StencilModel`; ``scores`` holds delta_e,
+rmse, psnr_db, ssim, fit_seconds.
+
+``.brdf`` (BRDF Explorer, "analytic" type): every fitted value is a GUI
+parameter (``float name min max default``) so the sec. 5.1 edits can be done
+interactively; the shader function ``vec3 BRDF(vec3 L, vec3 V, vec3 N,
+vec3 X, vec3 Y)`` evaluates eqs. 2-10 in the local frame (X, Y, N) and
+returns fr without the cosine.  The body is written in a small GLSL subset
+(one declaration per line, no branches) so that tests can transliterate it
+to Python and compare it with :func:`facetsynth.stencil.model.evaluate`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .model import COS_FLOOR, Mode, StencilModel
+
+__all__ = ["model_to_json", "model_from_json", "to_brdf_explorer"]
+
+_SCORE_KEYS = ("delta_e", "rmse", "psnr_db", "ssim", "fit_seconds")
+
+
+def _f(x):
+    return float(x)
+
+
+def model_to_json(model, scores=None):
+    """StencilModel (+ scores dict) -> JSON-ready dict with ``modes`` and ``scores``."""
+    modes = [{"phi_a_deg": _f(np.rad2deg(m.phi_a)), "w": _f(m.w), "a": _f(m.a), "b": _f(m.b),
+              "kd": _f(m.kd), "ks": _f(m.ks), "alpha": _f(m.alpha), "m": [_f(v) for v in m.m],
+              "retro": bool(m.retro)} for m in model.modes]
+    out = {"model": "facetsynth.stencil (Filip et al., adaptive highlight stencils)",
+           "n_modes": len(modes), "modes": modes, "beta": [_f(b) for b in model.beta],
+           "r": _f(model.r), "m_bg": [_f(v) for v in model.m_bg], "k": _f(model.k),
+           "alpha_s": _f(model.alpha_s), "a_s": _f(model.a_s), "b_s": _f(model.b_s),
+           "dw_ratio": _f(model.dw_ratio)}
+    sc = dict(scores or {})
+    out["scores"] = {k: (None if sc.get(k) is None else _f(sc[k])) for k in _SCORE_KEYS}
+    for k, v in sc.items():
+        if k not in out["scores"] and isinstance(v, (int, float)):
+            out["scores"][k] = _f(v)
+    return out
+
+
+def model_from_json(d):
+    """Inverse of :func:`model_to_json` (scores are ignored)."""
+    modes = tuple(Mode(phi_a=float(np.deg2rad(m["phi_a_deg"])), w=m["w"], a=m["a"], b=m["b"], kd=m["kd"],
+                       ks=m["ks"], alpha=m["alpha"], m=tuple(m["m"]), retro=bool(m.get("retro", False)))
+                  for m in d["modes"])
+    return StencilModel(modes=modes, beta=tuple(d["beta"]), r=d["r"], m_bg=tuple(d["m_bg"]), k=d["k"],
+                        alpha_s=d["alpha_s"], a_s=d["a_s"], b_s=d["b_s"], dw_ratio=d["dw_ratio"])
+
+
+def _g(x):
+    """GLSL float literal (always with a decimal point or exponent)."""
+    s = repr(float(x))
+    if s in ("inf", "-inf", "nan"):
+        raise ValueError(f"cannot export non-finite value {s}")
+    return s if ("." in s or "e" in s) else s + ".0"
+
+
+def to_brdf_explorer(model):
+    """The model as a BRDF Explorer ``.brdf`` file (text)."""
+    P = []  # (name, min, max, default)
+
+    def par(name, v, lo, hi):
+        v = float(v)
+        P.append((name, min(lo, v), max(hi, v), v))
+        return name
+
+    body = ["vec3 wi = vec3(dot(L, X), dot(L, Y), dot(L, N));",
+            "vec3 wo = vec3(dot(V, X), dot(V, Y), dot(V, N));",
+            "float vis = step(0.0, wi.z) * step(0.0, wo.z);",
+            f"float cp = max(wi.z, {_g(COS_FLOOR)}) * max(wo.z, {_g(COS_FLOOR)});",
+            "vec3 wr = vec3(-wi.x, -wi.y, wi.z);"]
+    n = len(model.modes)
+    for j, m in enumerate(model.modes):
+        par(f"phi_a{j}", np.rad2deg(m.phi_a), 0.0, 180.0)
+        par(f"w{j}", m.w, 0.01, 0.99)
+        par(f"a{j}", m.a, -1.0, 2.0)
+        par(f"b{j}", m.b, -1.0, 2.0)
+        par(f"kd{j}", m.kd, 0.0, 1.0)
+        par(f"ks{j}", m.ks, 0.0, 10.0)
+        par(f"alpha{j}", m.alpha, 0.0, 300.0)
+        for c, v in zip("rgb", m.m):
+            par(f"m{j}{c}", v, 0.0, 4.0)
+        src = "wr" if m.retro else "wi"
+        body += [
+            f"vec3 H{j} = normalize({src} + wo);",
+            f"float F{j} = 1.0 - abs(dot(H{j}, vec3(sin(radians(phi_a{j})), cos(radians(phi_a{j})), 0.0)));",
+            f"float E{j} = max(F{j} * (a{j} + b{j} / cp), 0.0);",
+            f"float L{j} = kd{j} + ks{j} * pow(E{j}, alpha{j});",
+            f"vec3 T{j} = vec3(m{j}r, m{j}g, m{j}b) * max(L{j}, 0.0);",
+            f"float M{j} = smoothstep(w{j} - dw * w{j}, w{j} + dw * w{j}, F{j});",
+        ]
+    par("dw", model.dw_ratio, 0.01, 0.5)
+    par("r", model.r, 0.0, 4.0)
+    for c, v in zip("rgb", model.m_bg):
+        par(f"mbg{c}", v, 0.0, 4.0)
+    for j, b in enumerate(model.beta):
+        par(f"beta{j}", b, 0.0, 1.0)
+    par("k", model.k, 0.0, max(10.0, model.k))
+    par("alpha_s", model.alpha_s, 0.0, 1000.0)
+    par("a_s", model.a_s, -1.0, 2.0)
+    par("b_s", model.b_s, -1.0, 2.0)
+    body.append(f"vec3 P{n} = r * vec3(mbgr, mbgg, mbgb);")
+    for j in range(n - 1, -1, -1):
+        top = f"T{j}" if j == n - 1 else f"((1.0 - beta{j}) * T{j} + beta{j} * T{j + 1})"
+        body.append(f"vec3 P{j} = (1.0 - M{j}) * P{j + 1} + M{j} * {top};")
+    body += ["vec3 Hs = normalize(wi + wo);",
+             "float S = max(1.0, k * pow(clamp(Hs.z, 0.0, 1.0), alpha_s) * max(a_s + b_s / cp, 0.0));",
+             "return vis * max(P0 * S, vec3(0.0));"]
+    lines = ["analytic", "",
+             "# Adaptive highlight stencils BRDF (Filip, Havlicek, Vavra), fitted by facetsynth.stencil.",
+             f"# {n} anisotropy mode(s); phi_a in degrees, U = [sin phi_a, cos phi_a, 0] in the (X, Y) frame.",
+             "", "::begin parameters"]
+    lines += [f"float {nm} {_g(lo)} {_g(hi)} {_g(v)}" for nm, lo, hi, v in P]
+    lines += ["::end parameters", "", "::begin shader", "",
+              "vec3 BRDF( vec3 L, vec3 V, vec3 N, vec3 X, vec3 Y )", "{"]
+    lines += ["    " + s for s in body]
+    lines += ["}", "", "::end shader", ""]
+    return "\n".join(lines)

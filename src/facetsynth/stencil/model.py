@@ -1,0 +1,187 @@
+"""The adaptive highlight-stencil BRDF model of paper 000 (Filip et al.), sec. 3.
+
+Per anisotropy mode j (ordered from the top/dominant mode, j = 0, to the
+bottom one):
+
+* stencil (eq. 2)       F_j = 1 - |H . U(phi_a)|,   U(phi_a) = [sin phi_a, cos phi_a, 0]
+* elevation (eq. 3)     E_j = F_j (a_j + b_j / (cos th_i cos th_v))
+* shape (eq. 4)         L_j = kd_j + ks_j E_j^alpha_j
+* colour (eq. 5)        T_j = m_j max(0, L_j)
+* support mask          M_j = smoothstep(w_j - d_w, w_j + d_w, F_j),  d_w = dw_ratio * w_j
+* merging (eqs. 7-9, generalised to n modes, bottom-up)
+      P_n = r m_bg                                          (background)
+      P_j = (1 - M_j) P_{j+1} + M_j [(1 - beta_j) T_j + beta_j T_{j+1}]
+  (beta_j blends mode j with the mode below; the bottom mode has no beta.)
+* specular (eq. 10)     B_S = P_0 max(1, k H_z^alpha_s (a_s + b_s / (cos th_i cos th_v)))
+  with (a_s, b_s) = (a_0, b_0) when a mode exists (paper) and own values otherwise.
+* retro-reflection (sec. 5.1): a mode with ``retro=True`` computes its H from
+  (-wi_x, -wi_y, wi_z), i.e. phi_i + pi.
+
+Directions are unit ``(..., 3)`` vectors with normal +z; the model is zero
+when either direction is at or below the horizon.  The cosine product in
+eq. 3 is floored at ``COS_FLOOR**2`` so grazing angles stay finite.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Tuple
+
+import numpy as np
+
+__all__ = [
+    "COS_FLOOR", "Mode", "StencilModel", "half_vector", "axis_vector", "stencil",
+    "elevation_scale", "mode_luminance", "mode_colour", "support_mask", "merge_modes",
+    "specular_factor", "evaluate", "evaluate_utia",
+]
+
+COS_FLOOR = np.cos(np.deg2rad(85.0))
+
+
+@dataclass(frozen=True)
+class Mode:
+    """One anisotropy mode (paper 000, sec. 3.2: phi_a, w, a, b, 3 x m, kd, ks, alpha)."""
+    phi_a: float              # radians, axis U = [sin phi_a, cos phi_a, 0]
+    w: float                  # support width threshold on F (0 wide .. 1 narrow)
+    a: float
+    b: float
+    kd: float
+    ks: float
+    alpha: float
+    m: Tuple[float, float, float]
+    retro: bool = False
+
+
+@dataclass(frozen=True)
+class StencilModel:
+    """All parameters of the model (paper 000, Tab. 1, plus the stated extras)."""
+    modes: Tuple[Mode, ...]
+    beta: Tuple[float, ...]               # len(modes) - 1 values (0 if < 2 modes)
+    r: float                              # background scale, eq. 7
+    m_bg: Tuple[float, float, float]      # background colour basis (m of the bottom mode)
+    k: float                              # specular, eq. 10
+    alpha_s: float
+    a_s: float = 1.0                      # specular elevation scaling (= a_0, b_0 with modes)
+    b_s: float = 0.0
+    dw_ratio: float = 0.15                # d_w = dw_ratio * w (paper: 0.1-0.2)
+    meta: dict = field(default_factory=dict, compare=False)
+
+    def with_modes(self, modes):
+        return replace(self, modes=tuple(modes))
+
+
+def half_vector(wi, wo, retro=False):
+    """H = (wi + wo)/|wi + wo|; with ``retro`` wi is first rotated by pi about the normal."""
+    wi = np.asarray(wi, float)
+    if retro:
+        wi = wi * np.array([-1.0, -1.0, 1.0])
+    h = wi + np.asarray(wo, float)
+    n = np.linalg.norm(h, axis=-1, keepdims=True)
+    return np.where(n > 1e-12, h / np.maximum(n, 1e-12), np.array([0.0, 0.0, 1.0]))
+
+
+def axis_vector(phi_a):
+    """U(phi_a) = [sin phi_a, cos phi_a, 0] (eq. 2)."""
+    phi_a = np.asarray(phi_a, float)
+    return np.stack([np.sin(phi_a), np.cos(phi_a), np.zeros_like(phi_a)], -1)
+
+
+def stencil(h, phi_a):
+    """Highlight stencil F = 1 - |H . U(phi_a)| (eq. 2)."""
+    u = axis_vector(phi_a)
+    return 1.0 - np.abs(np.sum(np.asarray(h, float) * u, -1))
+
+
+def _cos_product(wi, wo):
+    ci = np.maximum(np.asarray(wi, float)[..., 2], COS_FLOOR)
+    co = np.maximum(np.asarray(wo, float)[..., 2], COS_FLOOR)
+    return ci * co
+
+
+def elevation_scale(a, b, cos_product):
+    """a + b / (cos th_i cos th_v) (eq. 3), cos product floored at COS_FLOOR**2."""
+    return a + b / np.maximum(cos_product, COS_FLOOR ** 2)
+
+
+def mode_luminance(F, scale, kd, ks, alpha):
+    """L = kd + ks E^alpha with E = F * scale (eqs. 3-4); E clamped to >= 0 before the power."""
+    E = np.maximum(F * scale, 0.0)
+    return kd + ks * np.power(E, alpha)
+
+
+def mode_colour(L, m):
+    """T_i = m_i max(0, L) (eq. 5); returns ``(..., 3)``."""
+    return np.maximum(L, 0.0)[..., None] * np.asarray(m, float)
+
+
+def support_mask(F, w, dw_ratio=0.15):
+    """Smooth support mask M: 0 for F <= w - d_w, 1 for F >= w + d_w, smoothstep between.
+
+    Paper 000 writes the two cases the other way round, but its smoothstep
+    f(x) = y^2 (3 - 2y), y = (x - w + d_w)/(2 d_w), rises with x = F and the
+    text says the mask surrounds the highlight centres (F = 1) with w = 1
+    "extremely narrow": the orientation used here.  d_w = 0 gives a step.
+    """
+    dw = dw_ratio * w
+    if dw <= 0:
+        return (np.asarray(F) >= w).astype(float)
+    y = np.clip((np.asarray(F, float) - w + dw) / (2 * dw), 0.0, 1.0)
+    return y * y * (3.0 - 2.0 * y)
+
+
+def merge_modes(T, M, beta, background):
+    """Eqs. 7-9 generalised: T ``(n, ..., 3)``, M ``(n, ...)``, beta ``(n-1,)``, background ``(3,)``.
+
+    Bottom-up: P = background; for j = n-1 .. 0:
+    P = (1 - M_j) P + M_j [(1 - beta_j) T_j + beta_j T_{j+1}]  (beta_{n-1} = 0).
+    """
+    bg = np.asarray(background, float)
+    n = len(T)
+    if n == 0:
+        return bg
+    P = bg
+    for j in range(n - 1, -1, -1):  # loop over modes (n <= 4), not samples
+        bj = beta[j] if j < n - 1 else 0.0
+        top = T[j] if bj == 0 else (1 - bj) * T[j] + bj * T[j + 1]
+        P = (1 - M[j])[..., None] * P + M[j][..., None] * top
+    return P
+
+
+def specular_factor(hz, cos_product, k, alpha_s, a_s, b_s):
+    """max(1, k H_z^alpha_s (a_s + b_s / (cos th_i cos th_v))) (eq. 10)."""
+    s = np.maximum(elevation_scale(a_s, b_s, cos_product), 0.0)
+    return np.maximum(1.0, k * np.power(np.clip(hz, 0.0, 1.0), alpha_s) * s)
+
+
+def mode_terms(model, wi, wo):
+    """Per mode (F, M, T) stacked: ``(n, ...)``, ``(n, ...)``, ``(n, ..., 3)``."""
+    cp = _cos_product(wi, wo)
+    Fs, Ms, Ts = [], [], []
+    for md in model.modes:
+        F = stencil(half_vector(wi, wo, md.retro), md.phi_a)
+        L = mode_luminance(F, elevation_scale(md.a, md.b, cp), md.kd, md.ks, md.alpha)
+        Fs.append(F)
+        Ms.append(support_mask(F, md.w, model.dw_ratio))
+        Ts.append(mode_colour(L, md.m))
+    return Fs, Ms, Ts
+
+
+def evaluate(model, wi, wo):
+    """The fitted BRDF B_S(wi, wo) ``(..., 3)`` in 1/sr (eqs. 2-10); zero below the horizon."""
+    wi, wo = np.broadcast_arrays(np.asarray(wi, float), np.asarray(wo, float))
+    _, M, T = mode_terms(model, wi, wo)
+    bg = model.r * np.asarray(model.m_bg, float)
+    B = merge_modes(T, M, model.beta, bg) * np.ones(wi.shape[:-1] + (1,))
+    h = half_vector(wi, wo)
+    S = specular_factor(h[..., 2], _cos_product(wi, wo), model.k, model.alpha_s, model.a_s, model.b_s)
+    out = B * S[..., None]
+    ok = (wi[..., 2] > 0) & (wo[..., 2] > 0)
+    out = np.where(ok[..., None], np.maximum(out, 0.0), 0.0)
+    return np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0)
+
+
+def evaluate_utia(model):
+    """The model on the UTIA grid, ``(3, 6, 48, 6, 48)``."""
+    from .grid import utia_directions
+    wi, wo = utia_directions()
+    return np.moveaxis(evaluate(model, wi, wo), -1, 0)
