@@ -1,0 +1,161 @@
+"""NDF clustering and interpolation weights (paper 002 sec. 5.3, "NDF Clustering", eq. 18).
+
+k-means (scikit-learn) over the partial NDFs picks a small set of
+representatives whose NDFs are completed by synthesis; every point's NDF is
+then a linear combination of its neighbour representatives (eq. 18). The
+distances are eq. 15's (:func:`facetsynth.synthesis.pairwise_distance`).
+"""
+
+from __future__ import annotations
+
+import logging
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+
+from .grid import DirectionGrid
+from .synthesis import SUPPORT, TINY, pairwise_distance
+
+log = logging.getLogger(__name__)
+
+
+def features(d: np.ndarray, w: np.ndarray, grid: DirectionGrid) -> np.ndarray:
+    """k-means features (N, T*F) float32: sqrt(W dw) D / s, s = integral of D over the domain.
+
+    Their squared Euclidean distance approximates the numerator of eq. 15
+    (the scale s taken over each tuple's own domain rather than the overlap,
+    which is nearly the same domain for points seen from one view).
+    """
+    d = np.asarray(d, float)
+    w = np.clip(np.asarray(w, float), 0.0, None)
+    m = w > SUPPORT
+    om = grid.solid_angles
+    s = np.sum(np.where(m, d, 0.0) * om, axis=(-2, -1))
+    f = np.where(m, np.sqrt(w * om) * d, 0.0) / np.where(s > TINY, s, 1.0)[:, None, None]
+    return f.reshape(len(f), -1).astype(np.float32)
+
+
+@dataclass(frozen=True)
+class Clustering:
+    labels: np.ndarray           # (N,) cluster of each input row
+    representatives: np.ndarray  # (R,) input row of each cluster's representative
+    n_requested: int             # clusters asked for
+    distinct: int                # distinct feature rows (bounds the useful number of clusters)
+
+
+def kmeans(feats: np.ndarray, d: np.ndarray, w: np.ndarray, grid: DirectionGrid, n_clusters: int,
+           seed: int = 0, n_init: int = 3, batch: bool = False) -> Clustering:
+    """k-means over ``feats`` (N, K); each cluster's representative is its member nearest the centre (eq. 15).
+
+    The centre, as a tuple for eq. 15, is the members' mean normalised D
+    (D / s) with their mean W. If there are fewer distinct NDFs than clusters
+    (degenerate data, e.g. identical partial NDFs) the number of clusters is
+    lowered to the number of distinct rows; empty clusters are dropped.
+    """
+    from sklearn.cluster import KMeans, MiniBatchKMeans
+
+    n = len(feats)
+    rounded = np.round(feats / max(float(np.abs(feats).max()), TINY), 6)
+    distinct = len(np.unique(rounded, axis=0))
+    k = int(max(1, min(n_clusters, distinct, n)))
+    if k == 1:
+        labels = np.zeros(n, int)
+    else:
+        algo = (MiniBatchKMeans(n_clusters=k, random_state=seed, n_init=n_init, batch_size=4096) if batch
+                else KMeans(n_clusters=k, random_state=seed, n_init=n_init))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")   # "fewer distinct clusters" is handled below
+            labels = algo.fit_predict(feats)
+    reps, new_labels = [], np.full(n, -1, int)
+    om = grid.solid_angles
+    for c in np.unique(labels):
+        members = np.flatnonzero(labels == c)
+        dm, wm = np.asarray(d[members], float), np.clip(np.asarray(w[members], float), 0.0, None)
+        mask = wm > SUPPORT
+        s = np.sum(np.where(mask, dm, 0.0) * om, axis=(1, 2))
+        centre_d = np.mean(dm / np.where(s > TINY, s, 1.0)[:, None, None], axis=0)
+        centre_w = np.mean(wm, axis=0)
+        dist = pairwise_distance(dm, wm, centre_d[None], centre_w[None], grid)[:, 0]
+        dist = np.where(np.isfinite(dist), dist, np.inf)
+        new_labels[members] = len(reps)
+        reps.append(int(members[int(np.argmin(dist))]))
+    return Clustering(labels=new_labels, representatives=np.asarray(reps, np.int64), n_requested=int(n_clusters),
+                      distinct=distinct)
+
+
+def constrained_least_squares(a: np.ndarray, b: np.ndarray, ridge: float = 0.0) -> np.ndarray:
+    """w minimising |A w - b|^2 + ridge tr(A^T A)/k |w|^2 subject to sum(w) = 1 (eq. 18 augmented).
+
+    ``a`` (C, k), ``b`` (C,). Solved through the KKT system by least squares,
+    so a singular system (identical representatives) still gives a finite
+    solution (the minimum-norm one).
+    """
+    k = a.shape[1]
+    ata = a.T @ a
+    if ridge > 0:
+        ata = ata + ridge * max(np.trace(ata) / k, TINY) * np.eye(k)
+    kkt = np.zeros((k + 1, k + 1))
+    kkt[:k, :k] = 2.0 * ata
+    kkt[:k, k] = kkt[k, :k] = 1.0
+    rhs = np.concatenate([2.0 * a.T @ b, [1.0]])
+    sol = np.linalg.lstsq(kkt, rhs, rcond=None)[0][:k]
+    if not np.all(np.isfinite(sol)):
+        sol = np.full(k, 1.0 / k)
+    return sol / sol.sum() if abs(sol.sum()) > TINY else np.full(k, 1.0 / k)
+
+
+def interpolation_weights(d: np.ndarray, w: np.ndarray, rep_d: np.ndarray, rep_w: np.ndarray, grid: DirectionGrid,
+                          k: int = 16, radius: float = 5.0, ridge: float = 1e-3,
+                          rep_rows: np.ndarray | None = None, rows: np.ndarray | None = None
+                          ) -> tuple[np.ndarray, np.ndarray, float]:
+    """Eq. 18: neighbour representatives and weights for points <d, w> (N, T, F).
+
+    Neighbours: the ``k`` nearest representatives under eq. 15, dropping
+    those farther than ``radius`` * lambda (lambda: the smallest eq. 15
+    distance between two representatives); the nearest is always kept.
+    Weights: least squares of D (cells weighted by W dw) on the neighbours'
+    partial NDFs with sum(w) = 1 (a small ``ridge`` keeps nearly collinear
+    neighbours from getting huge opposite weights). A point that is itself a
+    representative (``rows[i] == rep_rows[j]``) gets weight 1 on it.
+    Returns (neighbours (N, k) int32, weights (N, k) float32, lambda);
+    padding entries repeat the nearest representative with weight 0.
+    """
+    n_rep = len(rep_d)
+    lam = np.inf
+    if n_rep > 1:
+        rr = pairwise_distance(rep_d, rep_w, rep_d, rep_w, grid)
+        np.fill_diagonal(rr, np.inf)
+        lam = float(np.min(rr))
+    limit = radius * lam if np.isfinite(lam) and lam > 0 else np.inf
+    n = len(d)
+    neighbours = np.zeros((n, k), np.int32)
+    weights = np.zeros((n, k), np.float32)
+    om = grid.solid_angles.reshape(-1)
+    rep_flat = np.asarray(rep_d, float).reshape(n_rep, -1)
+    where_rep = {} if rep_rows is None or rows is None else {int(r): j for j, r in enumerate(rep_rows)}
+    for start in range(0, n, 256):
+        sl = slice(start, min(start + 256, n))
+        dd, ww = np.asarray(d[sl], float), np.asarray(w[sl], float)
+        dist = pairwise_distance(dd, ww, rep_d, rep_w, grid)
+        dist = np.where(np.isfinite(dist), dist, np.inf)
+        order = np.argsort(dist, axis=1, kind="stable")[:, :k]
+        for i in range(len(dd)):
+            row = start + i
+            if rows is not None and int(rows[row]) in where_rep:
+                j = where_rep[int(rows[row])]
+                neighbours[row] = j
+                weights[row, 0] = 1.0
+                continue
+            near = order[i]
+            keep = near[(dist[i, near] <= limit)]
+            if keep.size == 0:
+                keep = near[:1]
+            cw = np.sqrt(np.clip(ww[i], 0.0, None).reshape(-1) * om)
+            a = rep_flat[keep].T * cw[:, None]
+            b = dd[i].reshape(-1) * cw
+            sol = constrained_least_squares(a, b, ridge) if keep.size > 1 else np.ones(1)
+            neighbours[row] = keep[0]
+            neighbours[row, :keep.size] = keep
+            weights[row, :keep.size] = sol
+    return neighbours, weights, lam

@@ -1,0 +1,57 @@
+# Clustering and example-based NDF synthesis (paper 002 sec. 5.2-5.3): k-means representatives
+# and eq. 18 interpolation weights; completion of the representatives' NDFs from rotated,
+# overlapping partial NDFs (eqs. 13-17) with the ANN search pruning of sec. 5.3.
+
+
+rule cluster:
+    input:
+        geometry="results/{sample}/rectify/geometry.json",
+        ndf="results/{sample}/partial_ndf/ndf.npy",
+        confidence="results/{sample}/partial_ndf/confidence.npy",
+        grid="results/{sample}/resample/grid.json",
+    output:
+        labels="results/{sample}/cluster/labels.npy",
+        representatives="results/{sample}/cluster/representatives.npy",
+        neighbours="results/{sample}/cluster/neighbours.npy",
+        weights="results/{sample}/cluster/weights.npy",
+        metrics="results/{sample}/cluster/metrics.json",
+    params:
+        seed=config["seed"],
+        **config["cluster"],
+    log:
+        "results/{sample}/logs/cluster.log",
+    benchmark:
+        "results/{sample}/benchmarks/cluster.tsv"
+    threads: 1
+    resources:
+        mem_mb=3000,
+    script:
+        "../scripts/cluster.py"
+
+
+rule synthesize:
+    input:
+        geometry="results/{sample}/rectify/geometry.json",
+        ndf="results/{sample}/partial_ndf/ndf.npy",
+        confidence="results/{sample}/partial_ndf/confidence.npy",
+        grid="results/{sample}/resample/grid.json",
+        representatives="results/{sample}/cluster/representatives.npy",
+        neighbours="results/{sample}/cluster/neighbours.npy",
+        weights="results/{sample}/cluster/weights.npy",
+    output:
+        ndf="results/{sample}/synthesize/ndf.npy",
+        confidence="results/{sample}/synthesize/confidence.npy",
+        grid="results/{sample}/synthesize/grid.json",
+        metrics="results/{sample}/synthesize/metrics.json",
+    params:
+        seed=config["seed"],
+        **config["synthesize"],
+    log:
+        "results/{sample}/logs/synthesize.log",
+    benchmark:
+        "results/{sample}/benchmarks/synthesize.tsv"
+    threads: 1
+    resources:
+        mem_mb=4000,
+    script:
+        "../scripts/synthesize.py"
