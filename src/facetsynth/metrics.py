@@ -42,3 +42,43 @@ def marker_centroids(image: np.ndarray, expected: np.ndarray, radius: float) -> 
         if weight.sum() > 0:
             found[m] = (weight * cols).sum() / weight.sum(), (weight * rows).sum() / weight.sum()
     return found
+
+
+# --- image comparison (held-out views, paper 002 sec. 6) ----------------------------
+
+def image_scores(truth: np.ndarray, prediction: np.ndarray, mask: np.ndarray) -> dict[str, float]:
+    """RMSE, PSNR and SSIM of predicted against true radiance over the sample's pixels.
+
+    ``truth``, ``prediction`` (F, H, W, 3) linear radiance of the F frames of
+    one view; ``mask`` (H, W) the sample's pixels. Normalisation (stated in
+    every metrics file): peak = the largest true radiance over the view's
+    sample pixels (all frames, all channels);
+
+    * ``rmse``: root mean square error over sample pixels, frames and
+      channels, in radiance units; ``rmse_normalised`` = rmse / peak;
+    * ``psnr_db`` = 20 log10(peak / rmse);
+    * ``ssim``: SSIM (Wang et al. 2004: Gaussian window sigma 1.5, K1 0.01,
+      K2 0.03) of the channel-mean images divided by peak (data range 1),
+      averaged over the sample's pixels and then over frames.
+    """
+    from scipy.ndimage import gaussian_filter
+
+    truth = np.asarray(truth, float)
+    prediction = np.asarray(prediction, float)
+    m = np.broadcast_to(mask, truth.shape[1:3])
+    t, p = truth[:, m], prediction[:, m]
+    peak = float(t.max()) if t.size else 0.0
+    rmse = float(np.sqrt(np.mean((p - t) ** 2))) if t.size else float("nan")
+    psnr = float(20 * np.log10(peak / rmse)) if rmse > 0 and peak > 0 else float("inf")
+    c1, c2 = 0.01**2, 0.03**2
+    ssims = []
+    for q in range(truth.shape[0]):
+        x = truth[q].mean(axis=-1) / max(peak, 1e-30)
+        y = prediction[q].mean(axis=-1) / max(peak, 1e-30)
+        f = lambda a: gaussian_filter(a, 1.5, truncate=3.5)  # noqa: E731
+        mx, my = f(x), f(y)
+        sxx, syy, sxy = f(x * x) - mx * mx, f(y * y) - my * my, f(x * y) - mx * my
+        s = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
+        ssims.append(float(s[m].mean()))
+    return {"rmse": rmse, "rmse_normalised": rmse / peak if peak > 0 else float("nan"), "psnr_db": psnr,
+            "ssim": float(np.mean(ssims)) if ssims else float("nan"), "peak": peak}

@@ -1,0 +1,120 @@
+"""Prediction: render the frames a capture manifest describes from a fitted SVBRDF (DESIGN.md sec. 4).
+
+Each pixel sees the sample-plane point through its centre (the camera's
+plane homography, as the virtual rig renders); that point's radiance under
+the frame's light is the pixel model read forwards (eq. 8),
+
+    I = rho(x, i, o) (n . i) L / |P - x|^2,
+
+written as scene-linear HDR (no exposure, no clipping, no noise): one EXR per
+frame with channels R, G, B, plus a capture manifest describing the predicted
+frames (one exposure of time 1 each), so that a prediction is itself a
+capture. Pixels off the sample are 0.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from . import manifest as manifest_io
+from .errors import InputError
+from .fileio import write_exr
+from .render import light_geometry, unit
+from .svbrdf import CHUNK, SVBRDF
+
+log = logging.getLogger(__name__)
+
+
+class FrameRenderer:
+    """Renders radiance images of one camera from an SVBRDF; the view-dependent terms are computed once."""
+
+    def __init__(self, model, camera, supersample: int = 1):
+        if camera.has_distortion:
+            raise ValueError("lens distortion is not supported by predict yet (undistort the capture first)")
+        self.model, self.camera, self.s = model, camera, int(supersample)
+        xy = camera.pixel_plane_points(self.s)                       # (H s, W s, 2)
+        points = np.concatenate([xy, np.zeros(xy.shape[:-1] + (1,))], axis=-1)
+        in_front = (points @ camera.R.T + camera.t)[..., 2] > 0       # the ray meets the plane ahead of the camera
+        index, inside = model.point_index(xy)
+        self.mask = inside & in_front
+        self.points = points[self.mask]
+        self.index = index[self.mask]
+        self.wo = unit(camera.centre - self.points)
+        # the camera is fixed: eq. 5's A(x, o) is computed once per pixel (SVBRDF models)
+        self.area_o = model.area_at(self.index, self.wo) if hasattr(model, "area_at") else None
+
+    @property
+    def sample_mask(self) -> np.ndarray:
+        """(H, W) pixels whose every sub-pixel sees the sample."""
+        s = self.s
+        m = self.mask.reshape(self.camera.height, s, self.camera.width, s)
+        return m.all(axis=(1, 3))
+
+    def radiance(self, light_position, light_intensity) -> np.ndarray:
+        """(H, W, 3) float32 radiance I of the frame, box-filtered over sub-pixels."""
+        wi, r2 = light_geometry(self.points, np.asarray(light_position, float))
+        value = np.zeros((len(self.index), 3))
+        for a in range(0, len(self.index), CHUNK):
+            sl = slice(a, a + CHUNK)
+            if self.area_o is None:
+                value[sl] = self.model.eval_index(self.index[sl], wi[sl], self.wo[sl])
+            else:
+                value[sl] = self.model.eval_index(self.index[sl], wi[sl], self.wo[sl], self.area_o[sl])
+        value *= (np.clip(wi[:, 2], 0.0, None) / r2)[:, None] * np.asarray(light_intensity, float)
+        image = np.zeros(self.mask.shape + (3,))
+        image[self.mask] = value
+        s = self.s
+        return image.reshape(self.camera.height, s, self.camera.width, s, 3).mean(axis=(1, 3)).astype(np.float32)
+
+
+def load_model(path: str | Path):
+    """A fitted model folder: the SVBRDF of paper 002 (default) or the Ward baseline (``model: ward``)."""
+    from .fileio import read_json
+    path = Path(path)
+    if read_json(path / "model.json").get("model") == "ward":
+        from .ward import WardSVBRDF
+        return WardSVBRDF.load(path)
+    return SVBRDF.load(path)
+
+
+def predict(model_dir: str | Path, manifest_path: str | Path, out_dir: str | Path, supersample: int = 1,
+            frames: list[int] | None = None, progress: bool = True) -> dict[str, Any]:
+    """Render every frame (or the listed ``frames``) of ``manifest_path`` from the SVBRDF in ``model_dir``.
+
+    Writes ``out_dir/frames/NNNN.exr`` (NNNN the frame's index in the
+    manifest) and ``out_dir/manifest.json``; returns that manifest. The
+    manifest is validated against the published schema (InputError naming the
+    file on a bad one); its frame files need not exist (a manifest can describe
+    views never captured).
+    """
+    manifest_path = Path(manifest_path)
+    m = manifest_io.load(manifest_path, check_files=False)
+    model = load_model(model_dir)
+    camera = manifest_io.camera(m)
+    try:
+        renderer = FrameRenderer(model, camera, supersample)
+    except ValueError as exc:
+        raise InputError(manifest_path, str(exc)) from None
+    if not renderer.mask.any():
+        log.warning("%s: no pixel of this camera sees the sample", manifest_path)
+    selected = range(len(m["frames"])) if frames is None else frames
+    out_dir = Path(out_dir)
+    (out_dir / "frames").mkdir(parents=True, exist_ok=True)
+    out_frames = []
+    for q in tqdm(selected, desc="predict", unit="frame", disable=not progress):
+        light = m["frames"][q]["light"]
+        image = renderer.radiance(light["position"], light["intensity"])
+        name = f"frames/{q:04d}.exr"
+        write_exr(out_dir / name, {"RGB": image}, {"exposure_time": 1.0, "quantity": "predicted radiance I",
+                                                   "source_frame": int(q)})
+        out_frames.append({"light": light, "exposures": [{"file": name, "time": 1.0}], "source_frame": int(q)})
+    out = {"version": 1, "units": "m", "sample": m["sample"], "camera": m["camera"], "frames": out_frames,
+           "prediction": {"model": str(Path(model_dir).resolve()), "manifest": str(manifest_path.resolve()),
+                          "supersample": int(supersample)}}
+    manifest_io.save(out_dir / "manifest.json", out)
+    return out

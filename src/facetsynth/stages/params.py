@@ -1,0 +1,240 @@
+"""Stage ``params``: ks, normalised NDF, shadowing, eta (paper 002 sec. 5.4) -> the fitted SVBRDF folder.
+
+Inputs: the completed representative NDFs of ``synthesize`` (in the partial
+NDF's scale), the eq. 18 neighbours and weights of ``cluster``, kd of
+``separate``, the per-point specular samples (``separate/specular.npy``,
+``valid.npy``) whose grazing part partial NDF fitting excluded, the specular
+colour of ``resample`` and the rectified geometry. Output: the folder
+described in :mod:`facetsynth.svbrdf` and ``params/metrics.json``.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from .. import params as fit
+from ..errors import InputError
+from ..fileio import atomic_dir, read_exr, read_json, write_json
+from ..grid import DirectionGrid
+from ..microfacet import fresnel, half_vector
+from ..render import light_geometry
+from ..svbrdf import SVBRDF
+from .common import RectifiedCapture, tiles
+
+log = logging.getLogger(__name__)
+
+
+def _load(path, shape0=None, what=""):
+    path = Path(path)
+    try:
+        a = np.load(path, mmap_mode="r")
+    except FileNotFoundError:
+        raise InputError(path, "file not found") from None
+    except Exception as exc:
+        raise InputError(path, f"not a readable .npy tensor ({exc})") from None
+    if shape0 is not None and a.shape[0] != shape0:
+        raise InputError(path, f"{what} has {a.shape[0]} rows, expected {shape0}")
+    return a
+
+
+def mixture(ks_rep: np.ndarray, neighbours: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per point (eq. 18): D(x) = sum w18 D_rep, so ks(x) = sum w18 ks_rep and the normalised NDF's
+    mixture weights are w18 ks_rep / ks(x). Returns (ks (P,), mixture weights (P, K)).
+
+    Eq. 18's least-squares weights may be negative; a mixture with negative
+    weights can make D and eq. 5's A(k) negative somewhere (measured: A down
+    to -0.7 on wallpaper, i.e. unbounded rho). The model's mixture weights are
+    therefore the non-negative part of w18 ks_rep, renormalised to sum 1 (a
+    convex mixture of normalised NDFs is a normalised NDF with A(k) > 0); ks(x)
+    is the eq. 18 value, clipped at 0.
+    """
+    contrib = weights * ks_rep[neighbours]
+    ks_pt = np.clip(contrib.sum(axis=1), 0.0, None)
+    positive = np.clip(contrib, 0.0, None)
+    total = positive.sum(axis=1, keepdims=True)
+    mix = np.divide(positive, total, out=np.clip(weights, 0.0, None), where=total > 0)
+    return ks_pt, mix
+
+
+def build_model(ndf: np.ndarray, grid: DirectionGrid, neighbours: np.ndarray, weights: np.ndarray,
+                kd: np.ndarray, colour: np.ndarray, capture: RectifiedCapture,
+                representatives: np.ndarray | None = None) -> tuple[SVBRDF, np.ndarray, np.ndarray]:
+    """The SVBRDF before eta: ks (sec. 5.4), normalised NDFs, A(k) (eq. 5), per-point mixtures.
+
+    Returns (model with eta = default and ks in the NDF's scale times colour,
+    per-point scalar ks (P,), per-representative ks (R,)).
+    """
+    normalised, ks_rep = fit.normalise(ndf, grid)
+    area = fit.projected_area(normalised, grid)
+    nb = np.asarray(neighbours, np.intp)
+    w18 = np.asarray(weights, float)
+    if nb.min() < 0 or nb.max() >= len(ks_rep):
+        raise ValueError(f"neighbour indices outside [0, {len(ks_rep)})")
+    ks_pt, mix = mixture(ks_rep, nb, w18)
+    ks_pt = np.where(capture.visible, ks_pt, 0.0)
+    kd = np.where(capture.visible[:, None], kd, 0.0)
+    model = SVBRDF(plane=capture.grid, grid=grid, kd=kd, ks=ks_pt[:, None] * colour,
+                   eta=np.full(len(ks_pt), fit.ETA_DEFAULT), ndf=normalised.astype(np.float32),
+                   area=area.astype(np.float32), neighbours=nb, weights=mix,
+                   representatives=representatives, eta_fitted=np.zeros(len(ks_pt), bool))
+    return model, ks_pt, ks_rep
+
+
+def grazing_fresnel(model: SVBRDF, ks_pt: np.ndarray, capture: RectifiedCapture, specular, valid,
+                    grazing_deg: float, min_ndf_fraction: float, c_ref_pt: np.ndarray) -> dict[str, np.ndarray]:
+    """F_m of eq. 20 for every grazing sample (light steeper than ``grazing_deg``) of every visible point.
+
+    Returns flat arrays over samples: ``point``, ``f_m``, ``c`` = |i.h|,
+    ``c_ref`` = ``c_ref_pt`` of the sample's point (|o.n| of the representative
+    whose completed NDF it mostly uses: the cosine at h = n, where the NDF's
+    scale absorbed F),
+    ``rho_s``. Only samples whose half vector lies in the lobe (D(h) >=
+    ``min_ndf_fraction`` x the point's largest D) are kept: elsewhere the
+    specular signal, and so F_m, is noise.
+    """
+    points = capture.points
+    cos_g = np.cos(np.radians(grazing_deg))
+    peak = np.array([float(model.ndf[r].max()) for r in range(model.ndf.shape[0])])
+    out = {k: [] for k in ("point", "f_m", "c", "c_ref", "rho_s")}
+    for tile in tqdm(list(tiles(capture.n_points)), desc="params: grazing samples", unit="tile"):
+        wi, _ = light_geometry(points[tile][:, None, :], capture.light_positions[None])   # (p, F, 3)
+        ok = np.asarray(valid[tile], bool) & (wi[..., 2] > 0) & (wi[..., 2] < cos_g)
+        ok &= capture.visible[tile][:, None] & (ks_pt[tile][:, None] > 0)
+        pp, ff = np.nonzero(ok)
+        if pp.size == 0:
+            continue
+        index = pp + tile.start
+        o = capture.view_position - points[index]
+        o /= np.linalg.norm(o, axis=-1, keepdims=True)
+        i = wi[pp, ff]
+        spec, c = model.specular_terms(index, i, o)
+        d_peak = np.sum(model.weights[index] * peak[model.neighbours[index]], axis=1)
+        d_here = model.ndf_at(index, half_vector(i, o))
+        lobe = d_here >= min_ndf_fraction * d_peak
+        rho_s = np.asarray(specular[tile], float)[pp, ff].mean(axis=-1)
+        f_m = fit.measured_fresnel(rho_s, ks_pt[index] * spec)
+        keep = lobe & (spec > 0)
+        for k, v in (("point", index), ("f_m", f_m), ("c", c), ("c_ref", c_ref_pt[index]), ("rho_s", rho_s)):
+            out[k].append(v[keep])
+    return {k: (np.concatenate(v) if v else np.zeros(0)) for k, v in out.items()}
+
+
+def fit_eta(model: SVBRDF, w18: np.ndarray, samples: dict[str, np.ndarray], reference: str | None,
+            bounds, default: float, min_samples: int, max_std: float, max_split_difference: float = 0.1,
+            log_residuals: bool = True) -> tuple:
+    """eta per representative by LM (eq. 19) on the grazing samples of the points it owns
+    (its largest eq. 18 weight), then per point by the eq. 18 weights.
+
+    The standard error of one fit assumes independent residuals, but the
+    NDF's errors are shared by a point's samples; so the fit is repeated on
+    the samples of the even and of the odd points, and eta counts as
+    unconstrained (default kept) when the halves disagree by more than
+    ``max_split_difference``. Returns (eta (P,), fitted (P,) bool,
+    per-representative records, eta per representative (R,)).
+    """
+    n_rep = model.ndf.shape[0]
+    owner = model.neighbours[np.arange(model.n_points), np.argmax(w18, axis=1)]
+    sample_owner = owner[samples["point"]] if samples["point"].size else np.zeros(0, np.intp)
+    order = np.argsort(sample_owner, kind="stable")
+    bounds_idx = np.searchsorted(sample_owner[order], np.arange(n_rep + 1))
+    eta_rep, ok_rep, records = np.full(n_rep, default), np.zeros(n_rep, bool), []
+    for r in range(n_rep):
+        sel = order[bounds_idx[r]:bounds_idx[r + 1]]
+        c_ref = None if reference is None else samples["c_ref"][sel]
+        kw = dict(bounds=bounds, default=default, min_samples=min_samples, max_std=max_std,
+                  log_residuals=log_residuals)
+        res = fit.fit_eta(samples["f_m"][sel], samples["c"][sel], c_ref, **kw)
+        record = {"eta": res.eta, "constrained": res.constrained, "std": res.std, "samples": res.samples,
+                  "reason": res.reason}
+        if res.constrained:
+            halves = []
+            for parity in (0, 1):
+                part = samples["point"][sel] % 2 == parity
+                half = fit.fit_eta(samples["f_m"][sel][part], samples["c"][sel][part],
+                                   None if c_ref is None else c_ref[part], **kw)
+                halves.append(half.eta if half.constrained else np.nan)
+            record["eta_halves"] = halves
+            if not np.all(np.isfinite(halves)) or abs(halves[0] - halves[1]) > max_split_difference:
+                res = fit.EtaFit(default, False, res.std, res.samples, res.rms,
+                                 f"even/odd points disagree: eta {halves[0]:.3f} / {halves[1]:.3f}")
+                record.update(eta=default, constrained=False, fitted_eta=record["eta"], reason=res.reason)
+        eta_rep[r], ok_rep[r] = res.eta, res.constrained
+        records.append(record)
+    total = w18.sum(axis=1)
+    eta = np.where(np.abs(total) > 1e-6, np.sum(w18 * eta_rep[model.neighbours], axis=1) / np.where(
+        np.abs(total) > 1e-6, total, 1.0), default)                    # points without weights keep the default
+    eta = np.clip(eta, *bounds)
+    fitted = ok_rep[owner]
+    return eta, fitted, records, eta_rep
+
+
+def run(geometry: str | Path, kd_path: str | Path, specular: str | Path, valid: str | Path, colour: str | Path,
+        representatives: str | Path, neighbours: str | Path, weights: str | Path, ndf: str | Path,
+        grid_path: str | Path, svbrdf_out: str | Path, metrics_out: str | Path, grazing_deg: float = 80.0,
+        reference: str = "lobe", eta_min: float = fit.ETA_BOUNDS[0], eta_max: float = fit.ETA_BOUNDS[1],
+        eta_default: float = fit.ETA_DEFAULT, min_samples: int = 8, max_std: float = 0.15,
+        min_ndf_fraction: float = 0.05, max_split_difference: float = 0.1, log_residuals: bool = True) -> None:
+    """Fit the remaining parameters and write the SVBRDF folder ``svbrdf_out`` and the metrics."""
+    capture = RectifiedCapture.load(geometry)
+    n = capture.n_points
+    grid = DirectionGrid.from_dict(read_json(grid_path))
+    reps = np.asarray(_load(representatives))
+    table = np.asarray(_load(ndf, len(reps), "the completed NDF table"), float)
+    if table.shape[1:] != grid.shape:
+        raise InputError(ndf, f"NDF table {table.shape[1:]} does not match its grid {grid.shape}")
+    nb = np.asarray(_load(neighbours, n, "neighbours"))
+    w18 = np.asarray(_load(weights, n, "weights"), float)
+    channels, _ = read_exr(kd_path)
+    kd = channels["RGB"].reshape(n, 3).astype(float)
+    col = np.asarray(_load(colour, n, "specular colour"), float)
+    spec, ok = _load(specular, n, "specular samples"), _load(valid, n, "sample validity")
+    ref = None if reference in (None, "none") else reference
+
+    model, ks_pt, ks_rep = build_model(table, grid, nb, w18, kd, col, capture, reps)
+    log.info("%d representatives, ks median %.4g; %d points", len(reps), float(np.median(ks_rep)), n)
+    owner = nb[np.arange(n), np.argmax(w18, axis=1)]
+    c_ref_rep = capture.view_directions(True)[np.asarray(reps, np.intp), 2]
+    samples = grazing_fresnel(model, ks_pt, capture, spec, ok, grazing_deg, min_ndf_fraction, c_ref_rep[owner])
+    log.info("%d grazing samples (lights beyond %.0f deg) in the lobes", samples["f_m"].size, grazing_deg)
+    eta, fitted, records, eta_rep = fit_eta(model, w18, samples, ref, (eta_min, eta_max), eta_default,
+                                            min_samples, max_std, max_split_difference, log_residuals)
+    model.eta, model.eta_fitted = eta, fitted & capture.visible
+    if ref == "lobe":
+        # each completed NDF carries F at |o.n| of its representative (module note of facetsynth.params):
+        # the physical ks_rep is ks_rep / F(c_ref, eta_rep); the per-point mixtures follow (eq. 18)
+        ks_phys, mix = mixture(ks_rep / np.maximum(fresnel(c_ref_rep, eta_rep), 1e-6), nb, w18)
+        model.weights = mix
+        model.ks = np.where(capture.visible, ks_phys, 0.0)[:, None] * col
+    model.info = {"eta": {"bounds": [eta_min, eta_max], "default": eta_default, "reference": ref or "none",
+                          "fitted_fraction": float(model.eta_fitted[capture.visible].mean()),
+                          "grazing_deg": grazing_deg},
+                  "ks": "ks = integral (n.h) D (sec. 5.4) x specular colour" + (" / F(|o.n|, eta)" if ref else "")}
+    with atomic_dir(svbrdf_out) as staging:       # the folder appears whole or not at all
+        model.save(staging, provenance={"ndf": str(ndf), "neighbours": str(neighbours), "geometry": str(geometry)})
+
+    n_fit = int(sum(r["constrained"] for r in records))
+    metrics = {"ground_truth": capture.truth_scene is not None, "points": n, "representatives": len(reps),
+               "grazing_samples": int(samples["f_m"].size), "representatives_eta_fitted": n_fit,
+               "points_eta_fitted_fraction": model.info["eta"]["fitted_fraction"],
+               "eta_default": eta_default, "eta_bounds": [eta_min, eta_max], "fresnel_reference": ref or "none",
+               "eta_median": float(np.median(eta[capture.visible])) if capture.visible.any() else None,
+               "per_representative": records[:200]}
+    truth = capture.truth()
+    if truth is not None:
+        on = capture.visible & (truth.region >= 0)
+        err = np.abs(eta - truth.eta)
+        metrics["eta_abs_error_median"] = float(np.median(err[on])) if on.any() else None
+        sel = on & model.eta_fitted
+        metrics["eta_abs_error_median_fitted"] = float(np.median(err[sel])) if sel.any() else None
+        metrics["eta_within_0.1_fraction_fitted"] = float((err[sel] <= 0.1).mean()) if sel.any() else None
+        kt = truth.ks.mean(axis=1)
+        sel = on & (kt > 0)
+        metrics["ks_median_rel_error"] = float(np.median(np.abs(model.ks.mean(axis=1)[sel] - kt[sel]) / kt[sel])) \
+            if sel.any() else None
+        log.info("eta |error| median %s (fitted points: %s), ks median rel error %s", metrics["eta_abs_error_median"],
+                 metrics["eta_abs_error_median_fitted"], metrics["ks_median_rel_error"])
+    write_json(metrics_out, metrics)

@@ -1,0 +1,298 @@
+"""The fitted SVBRDF (DESIGN.md sec. 4): the folder a user takes away, and its loader.
+
+The model is paper 002's eq. 6 per point x of the rectified sample-plane grid,
+
+    rho(x, i, o) = kd(x)/pi + ks(x) D(x, h) S(x, i) S(x, o) F(|i.h|, eta(x)) / (4 (i.n)(o.n))
+                 = kd(x)/pi + ks(x) D(x, h) F(|i.h|, eta(x)) / (4 A(x, i) A(x, o)),
+
+(S(k) = (k.n)/A(k), eq. 5; the second form has no 0/0 at grazing), with the
+per-point NDF an eq. 18 mixture of representative NDFs,
+
+    D(x, h) = max(0, sum_k w(x, k) D_rep[j(x, k)](h)),  A(x, k) = sum_k w(x, k) A_rep[j(x, k)](k)
+
+(eq. 5 is linear in D, so the mixture's A is the mixture of the A's). The
+weights here are those of the normalised NDFs: w = w18 ks_rep / ks(x), which
+sum to one like eq. 18's.
+
+Folder layout (``model.json`` describes it):
+
+    kd.exr, ks.exr        R, G, B maps on the plane grid (rows, cols)
+    eta.exr               channels ``eta`` and ``eta_fitted`` (1 where grazing data constrained eta)
+    ndf.npy               (R, n_theta, n_phi) float32 normalised representative NDFs on ``grid``
+    projected_area.npy    (R, Ts, Fs) float32 eq. 5's A(k) of each representative on ``shadowing_grid``
+    representatives.npy   (R,) int64 point index of each representative
+    neighbours.npy        (P, K) int32 indices into the representatives
+    weights.npy           (P, K) float32 mixture weights (padding has weight 0)
+    model.json            version, units, plane grid, direction grids, eta range and default, provenance
+
+Points are sample-plane positions in metres (z = 0); a point maps to the
+rectified cell containing it (PlaneGrid, the one place that maps (row, col)
+to (x, y)); points off the sample get rho = 0.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .errors import InputError
+from .fileio import read_exr, read_json, write_exr, write_json, write_npy
+from .grid import DirectionGrid
+from .microfacet import fresnel, half_vector
+from .partial_ndf import SHADOWING_GRID
+from .plane import PlaneGrid
+
+FORMAT_VERSION = 1
+CHUNK = 1 << 16   # directions evaluated per block: bounds eval's memory
+
+
+def _bilinear(grid: DirectionGrid, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Flat cell indices (N, 4) and bilinear weights (N, 4) of directions d (N, 3) on ``grid``.
+
+    Same interpolation as :meth:`DirectionGrid.lookup` (periodic in phi,
+    theta clamped to the rings).
+    """
+    t, p = grid.coordinates(d)
+    t = np.clip(t, 0.0, grid.n_theta - 1.0)
+    if grid.n_theta > 1:
+        t0 = np.minimum(np.floor(t).astype(np.intp), grid.n_theta - 2)
+        ft = t - t0
+    else:
+        t0, ft = np.zeros(t.shape, np.intp), np.zeros(t.shape)
+    t1 = np.minimum(t0 + 1, grid.n_theta - 1)
+    p0 = np.floor(p).astype(np.intp)
+    fp = p - p0
+    p0 %= grid.n_phi
+    p1 = (p0 + 1) % grid.n_phi
+    cells = np.stack([t0 * grid.n_phi + p0, t0 * grid.n_phi + p1, t1 * grid.n_phi + p0, t1 * grid.n_phi + p1], -1)
+    weights = np.stack([(1 - ft) * (1 - fp), (1 - ft) * fp, ft * (1 - fp), ft * fp], -1)
+    return cells, weights
+
+
+@dataclass
+class SVBRDF:
+    """A fitted SVBRDF in memory; :meth:`load` reads the folder, :meth:`eval` evaluates rho in 1/sr."""
+
+    plane: PlaneGrid
+    grid: DirectionGrid
+    kd: np.ndarray                 # (P, 3)
+    ks: np.ndarray                 # (P, 3)
+    eta: np.ndarray                # (P,)
+    ndf: np.ndarray                # (R, T, F) normalised
+    area: np.ndarray               # (R, Ts, Fs)
+    neighbours: np.ndarray         # (P, K) int
+    weights: np.ndarray            # (P, K)
+    representatives: np.ndarray | None = None
+    eta_fitted: np.ndarray | None = None     # (P,) bool
+    shadowing_grid: DirectionGrid = SHADOWING_GRID
+    info: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self):
+        p = self.plane.rows * self.plane.cols
+        for name, shape in (("kd", (p, 3)), ("ks", (p, 3)), ("eta", (p,))):
+            if getattr(self, name).shape != shape:
+                raise ValueError(f"SVBRDF {name} has shape {getattr(self, name).shape}, expected {shape}")
+        if self.neighbours.shape != self.weights.shape or self.neighbours.shape[0] != p:
+            raise ValueError(f"SVBRDF neighbours {self.neighbours.shape} / weights {self.weights.shape}: "
+                             f"expected (P={p}, K) each")
+        if self.ndf.shape[1:] != self.grid.shape or self.area.shape[1:] != self.shadowing_grid.shape:
+            raise ValueError("SVBRDF NDF / projected-area tables do not match their grids")
+        self._ndf_flat = np.ascontiguousarray(self.ndf.reshape(self.ndf.shape[0], -1), dtype=np.float64)
+        self._area_flat = np.ascontiguousarray(self.area.reshape(self.area.shape[0], -1), dtype=np.float64)
+
+    # --- the folder ----------------------------------------------------------------
+    @classmethod
+    def load(cls, path: str | Path) -> "SVBRDF":
+        """Read a fitted SVBRDF folder (InputError names the file on a bad one)."""
+        path = Path(path)
+        meta = read_json(path / "model.json")
+        if meta.get("version") != FORMAT_VERSION:
+            raise InputError(path / "model.json", f"unsupported SVBRDF format version {meta.get('version')!r}")
+        try:
+            plane = PlaneGrid.from_dict(meta["plane_grid"])
+            grid = DirectionGrid.from_dict(meta["grid"])
+            sgrid = DirectionGrid.from_dict(meta["shadowing_grid"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InputError(path / "model.json", f"incomplete SVBRDF description ({exc})") from None
+        p = plane.rows * plane.cols
+
+        def image(name, channel):
+            channels, _ = read_exr(path / name)
+            if channel not in channels:
+                raise InputError(path / name, f"no {channel} channel (found: {', '.join(sorted(channels))})")
+            a = channels[channel]
+            if a.shape[:2] != (plane.rows, plane.cols):
+                raise InputError(path / name, f"map is {a.shape[1]}x{a.shape[0]}, the plane grid "
+                                              f"{plane.cols}x{plane.rows}")
+            return a.reshape((p,) + a.shape[2:]).astype(np.float64)
+
+        def tensor(name):
+            file = path / name
+            if not file.is_file():
+                raise InputError(file, "file not found")
+            try:
+                return np.load(file)
+            except Exception as exc:
+                raise InputError(file, f"not a readable .npy tensor ({exc})") from None
+
+        eta_channels, _ = read_exr(path / "eta.exr")
+        fitted = eta_channels.get("eta_fitted")
+        try:
+            return cls(plane=plane, grid=grid, kd=image("kd.exr", "RGB"), ks=image("ks.exr", "RGB"),
+                       eta=image("eta.exr", "eta"), ndf=tensor("ndf.npy"), area=tensor("projected_area.npy"),
+                       neighbours=tensor("neighbours.npy").astype(np.intp), weights=tensor("weights.npy"),
+                       representatives=tensor("representatives.npy"),
+                       eta_fitted=None if fitted is None else fitted.reshape(-1) > 0.5,
+                       shadowing_grid=sgrid, info=meta)
+        except ValueError as exc:
+            raise InputError(path, f"inconsistent SVBRDF folder ({exc})") from None
+
+    def save(self, path: str | Path, provenance: dict[str, Any] | None = None) -> None:
+        """Write the folder (every file atomically; model.json last)."""
+        path = Path(path)
+        path.mkdir(parents=True, exist_ok=True)
+        rc = (self.plane.rows, self.plane.cols)
+        header = {"units": "kd, ks: dimensionless albedo; rho = kd/pi + ks D S S F / (4 (i.n)(o.n)) in 1/sr",
+                  "source": "facetsynth params (paper 002 sec. 5.4)"}
+        write_exr(path / "kd.exr", {"RGB": self.kd.reshape(rc + (3,))}, dict(header, quantity="kd"))
+        write_exr(path / "ks.exr", {"RGB": self.ks.reshape(rc + (3,))}, dict(header, quantity="ks"))
+        fitted = np.ones(rc) if self.eta_fitted is None else self.eta_fitted.reshape(rc).astype(float)
+        write_exr(path / "eta.exr", {"eta": self.eta.reshape(rc), "eta_fitted": fitted},
+                  dict(header, quantity="eta (relative refraction index, eq. 3)"))
+        write_npy(path / "ndf.npy", self.ndf.astype(np.float32))
+        write_npy(path / "projected_area.npy", self.area.astype(np.float32))
+        reps = self.representatives if self.representatives is not None else np.arange(self.ndf.shape[0])
+        write_npy(path / "representatives.npy", np.asarray(reps, np.int64))
+        write_npy(path / "neighbours.npy", self.neighbours.astype(np.int32))
+        write_npy(path / "weights.npy", self.weights.astype(np.float32))
+        meta = {"version": FORMAT_VERSION, "units": "m", "model": "paper 002 eq. 6 with eq. 18 NDF mixtures",
+                "plane_grid": self.plane.to_dict(), "grid": self.grid.to_dict(),
+                "shadowing_grid": self.shadowing_grid.to_dict(),
+                "files": {"kd": "kd.exr", "ks": "ks.exr", "eta": "eta.exr", "ndf": "ndf.npy",
+                          "projected_area": "projected_area.npy", "representatives": "representatives.npy",
+                          "neighbours": "neighbours.npy", "weights": "weights.npy"},
+                "loader": "facetsynth.SVBRDF.load(path).eval(points, wi, wo)"}
+        meta.update({k: v for k, v in self.info.items() if k not in meta})
+        if provenance:
+            meta["provenance"] = provenance
+        write_json(path / "model.json", meta)
+
+    # --- evaluation ----------------------------------------------------------------
+    @property
+    def n_points(self) -> int:
+        return self.plane.rows * self.plane.cols
+
+    def point_index(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Cell index (...) of sample-plane points (..., 2 or 3) and whether each lies on the sample."""
+        points = np.asarray(points, float)
+        cr = self.plane.to_pixel(points[..., 0], points[..., 1])
+        col, row = np.floor(cr[..., 0] + 0.5), np.floor(cr[..., 1] + 0.5)
+        inside = (col >= 0) & (col < self.plane.cols) & (row >= 0) & (row < self.plane.rows)
+        if points.shape[-1] == 3:
+            inside &= np.abs(points[..., 2]) < 1e-6
+        col = np.clip(col, 0, self.plane.cols - 1).astype(np.intp)
+        row = np.clip(row, 0, self.plane.rows - 1).astype(np.intp)
+        return row * self.plane.cols + col, inside
+
+    def _mixture(self, table: np.ndarray, grid: DirectionGrid, index: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """sum_k w(x, k) table[j(x, k)](d) for points ``index`` (N,) and directions d (N, 3)."""
+        cells, bw = _bilinear(grid, d)
+        out = np.zeros(len(index))
+        for k in range(self.neighbours.shape[1]):
+            w = self.weights[index, k]
+            use = w != 0
+            if not use.any():
+                continue
+            rep = self.neighbours[index[use], k]
+            vals = np.sum(table[rep[:, None], cells[use]] * bw[use], axis=-1)
+            out[use] += w[use] * vals
+        return out
+
+    def ndf_at(self, index: np.ndarray, h: np.ndarray) -> np.ndarray:
+        """The per-point normalised NDF D(x, h) (eq. 18 mixture, clipped at 0) at points (N,), half vectors (N, 3)."""
+        return np.maximum(self._mixture(self._ndf_flat, self.grid, index, h), 0.0)
+
+    def area_at(self, index: np.ndarray, k: np.ndarray) -> np.ndarray:
+        """A(x, k) of eq. 5 (the mixture's projected area, floored at 1e-6) at points (N,), directions (N, 3)."""
+        return np.maximum(self._mixture(self._area_flat, self.shadowing_grid, index, k), 1e-6)
+
+    def specular_terms(self, index: np.ndarray, wi: np.ndarray, wo: np.ndarray,
+                       area_o: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(D / (4 A(i) A(o)), c = |i.h|) for flat point indices (N,) and directions (N, 3).
+
+        The specular factor of eq. 6 without ks and F; 0 where i or o is at or
+        below the horizon. ``area_o``: A(x, o) when already known (a fixed camera).
+        """
+        h = half_vector(wi, wo)
+        c = 0.5 * (np.abs(np.sum(wi * h, -1)) + np.abs(np.sum(wo * h, -1)))
+        d = self.ndf_at(index, h)
+        a_i = self.area_at(index, wi)
+        a_o = self.area_at(index, wo) if area_o is None else area_o
+        spec = d / (4.0 * (a_i * a_o))
+        valid = (wi[..., 2] > 0.0) & (wo[..., 2] > 0.0)
+        return np.where(valid, spec, 0.0), c
+
+    def eval_index(self, index: np.ndarray, wi: np.ndarray, wo: np.ndarray,
+                   area_o: np.ndarray | None = None) -> np.ndarray:
+        """rho (N, 3) in 1/sr at flat point indices (N,) for unit directions (N, 3)."""
+        spec, c = self.specular_terms(index, wi, wo, area_o)
+        f = fresnel(c, self.eta[index])
+        rho = self.kd[index] / np.pi + self.ks[index] * (spec * f)[:, None]
+        valid = (wi[..., 2] > 0.0) & (wo[..., 2] > 0.0)
+        rho = np.where(valid[:, None], rho, 0.0)
+        return np.clip(np.nan_to_num(rho, nan=0.0, posinf=0.0, neginf=0.0), 0.0, None)
+
+    def eval(self, points: np.ndarray, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
+        """rho(x, i, o) of eq. 6 in 1/sr, shape broadcast(points[..., 0], wi[..., 0], wo[..., 0]) + (3,).
+
+        ``points`` (..., 2 or 3) sample-plane positions in metres; ``wi``,
+        ``wo`` (..., 3) unit directions (normalised here anyway). Vectorised and
+        broadcast over any leading dimensions, evaluated in blocks. Reciprocal
+        (h and c = |i.h| are symmetric in i, o; A(i) A(o) commutes),
+        non-negative, never NaN/Inf: 0 below the horizon (i.n <= 0 or
+        o.n <= 0) and off the sample; finite at grazing (A(k) > 0 there).
+        """
+        points, wi, wo = (np.asarray(a, float) for a in (points, wi, wo))
+        index, inside = self.point_index(points)
+        shape = np.broadcast_shapes(index.shape, wi.shape[:-1], wo.shape[:-1])
+        index = np.broadcast_to(index, shape).ravel()
+        inside = np.broadcast_to(inside, shape).ravel()
+        wi = np.broadcast_to(wi, shape + (3,)).reshape(-1, 3)
+        wo = np.broadcast_to(wo, shape + (3,)).reshape(-1, 3)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            wi = np.nan_to_num(wi / np.linalg.norm(wi, axis=-1, keepdims=True))
+            wo = np.nan_to_num(wo / np.linalg.norm(wo, axis=-1, keepdims=True))
+        out = np.zeros((index.size, 3))
+        for s in range(0, index.size, CHUNK):
+            sl = slice(s, s + CHUNK)
+            out[sl] = self.eval_index(index[sl], wi[sl], wo[sl])
+        out[~inside] = 0.0
+        return out.reshape(shape + (3,))
+
+
+def tabulate_truth(maps, grid: DirectionGrid, plane: PlaneGrid, shadowing_grid: DirectionGrid = SHADOWING_GRID) -> SVBRDF:
+    """An SVBRDF with the true NDFs tabulated on ``grid``: one representative per distinct NDF.
+
+    ``maps`` are the true MaterialMaps at the plane grid's points (P,). Points
+    whose NDF parameters (alpha_u, alpha_v, frame azimuth) are equal share one
+    representative with weight 1. The reference for the loader's tabulation
+    error and for predict's consistency (the fitted model's limit with perfect
+    NDF synthesis); not a fit. The tabulated NDF is renormalised on the grid,
+    and A(k) computed from it by eq. 5.
+    """
+    from .params import normalise, projected_area
+    p = plane.rows * plane.cols
+    key = np.stack([maps.alpha_u, maps.alpha_v, np.mod(maps.phi_frame, 2 * np.pi)], -1).reshape(p, 3)
+    unique, first, owner = np.unique(np.round(key, 12), axis=0, return_index=True, return_inverse=True)
+    reps = maps.take(first)
+    table = reps.take((slice(None), None)).ndf(grid.directions.reshape(1, -1, 3)).reshape((len(first),) + grid.shape)
+    nd, _ = normalise(table, grid)
+    area = projected_area(nd, grid, shadowing_grid)
+    return SVBRDF(plane=plane, grid=grid, kd=np.asarray(maps.kd, float).reshape(p, 3),
+                  ks=np.asarray(maps.ks, float).reshape(p, 3), eta=np.asarray(maps.eta, float).reshape(p),
+                  ndf=nd.astype(np.float32), area=area.astype(np.float32),
+                  neighbours=owner.reshape(p, 1).astype(np.intp), weights=np.ones((p, 1)),
+                  representatives=first, eta_fitted=np.ones(p, bool), shadowing_grid=shadowing_grid)

@@ -1,0 +1,32 @@
+# Remaining parameters (paper 002 sec. 5.4): ks, normalised NDF, shadowing (eq. 5), eta by
+# Levenberg-Marquardt on eqs. 19-20 -> the fitted SVBRDF folder results/{sample}/svbrdf/.
+# Inputs from cluster and synthesize (issue 4); reachable as a target only.
+
+
+rule params:
+    input:
+        geometry="results/{sample}/rectify/geometry.json",
+        kd="results/{sample}/separate/kd.exr",
+        specular="results/{sample}/separate/specular.npy",
+        valid="results/{sample}/separate/valid.npy",
+        colour="results/{sample}/resample/specular_colour.npy",
+        representatives="results/{sample}/cluster/representatives.npy",
+        neighbours="results/{sample}/cluster/neighbours.npy",
+        weights="results/{sample}/cluster/weights.npy",
+        ndf="results/{sample}/synthesize/ndf.npy",
+        grid="results/{sample}/synthesize/grid.json",
+    output:
+        svbrdf=directory("results/{sample}/svbrdf"),
+        metrics="results/{sample}/params/metrics.json",
+    params:
+        grazing_deg=config["partial_ndf"]["grazing_deg"],
+        **config["params"],
+    log:
+        "results/{sample}/logs/params.log",
+    benchmark:
+        "results/{sample}/benchmarks/params.tsv"
+    threads: 1
+    resources:
+        mem_mb=3000,
+    script:
+        "../scripts/params.py"

@@ -1,0 +1,91 @@
+# Held-out views (paper 002 sec. 6, Figs. 9-10): the virtual rig renders captures from views not
+# used for fitting; the fitted SVBRDF and the per-point Ward baseline predict them (the code path
+# of `facetsynth predict`); results/{sample}/validate/metrics.json scores both.
+
+HELDOUT_VIEWS = {v["name"]: v for v in config["validate"]["views"]}
+
+
+wildcard_constraints:
+    view="|".join(HELDOUT_VIEWS),
+
+
+def virtual_scene(wildcards):
+    row = SAMPLE_SHEET[wildcards.sample]
+    if row["source"] != "virtual":
+        raise WorkflowError(f"validate: sample '{wildcards.sample}' is not virtual, so there is no held-out "
+                            "ground truth to render; validate against a held-out capture of your own with "
+                            "`facetsynth predict results/SAMPLE/svbrdf HELDOUT/manifest.json OUT` (README)")
+    return {"scene": row["path"], "rig": sample_rig(wildcards.sample)}
+
+
+rule heldout_capture:
+    input:
+        unpack(virtual_scene),
+    output:
+        directory("results/{sample}/validate/heldout/{view}"),
+    params:
+        theta_deg=lambda wc: HELDOUT_VIEWS[wc.view]["theta_deg"],
+        phi_deg=lambda wc: HELDOUT_VIEWS[wc.view]["phi_deg"],
+        led_every=config["validate"]["led_every"],
+        position_every=config["validate"]["position_every"],
+        seed=config["seed"],
+    log:
+        "results/{sample}/logs/heldout_capture_{view}.log",
+    benchmark:
+        "results/{sample}/benchmarks/heldout_capture_{view}.tsv"
+    threads: 1
+    resources:
+        mem_mb=2000,
+    script:
+        "../scripts/heldout_capture.py"
+
+
+rule baseline_ward:
+    input:
+        geometry="results/{sample}/rectify/geometry.json",
+        kd="results/{sample}/separate/kd.exr",
+        specular="results/{sample}/separate/specular.npy",
+        valid="results/{sample}/separate/valid.npy",
+        colour="results/{sample}/resample/specular_colour.npy",
+    output:
+        model=directory("results/{sample}/baseline/ward"),
+        metrics="results/{sample}/baseline/metrics.json",
+    params:
+        max_nfev=config["baseline"]["max_nfev"],
+    log:
+        "results/{sample}/logs/baseline_ward.log",
+    benchmark:
+        "results/{sample}/benchmarks/baseline_ward.tsv"
+    threads: 1
+    resources:
+        mem_mb=2000,
+    script:
+        "../scripts/baseline_ward.py"
+
+
+rule validate:
+    input:
+        svbrdf="results/{sample}/svbrdf",
+        params_metrics="results/{sample}/params/metrics.json",
+        ward="results/{sample}/baseline/ward",
+        heldout=expand("results/{{sample}}/validate/heldout/{view}", view=list(HELDOUT_VIEWS)),
+    output:
+        metrics="results/{sample}/validate/metrics.json",
+        images=directory("results/{sample}/validate/images"),
+        predictions=directory("results/{sample}/validate/predictions"),
+    params:
+        views=list(HELDOUT_VIEWS),
+        # the fitting stages of each method (Snakemake benchmark: files, read when this job runs)
+        fit_benchmarks=lambda wc: [f"results/{wc.sample}/benchmarks/{s}.tsv"
+                                   for s in ("partial_ndf", "cluster", "synthesize", "params")],
+        ward_benchmark=lambda wc: f"results/{wc.sample}/benchmarks/baseline_ward.tsv",
+        images_per_view=config["validate"]["images_per_view"],
+    log:
+        "results/{sample}/logs/validate.log",
+    benchmark:
+        "results/{sample}/benchmarks/validate.tsv"
+    threads: 1
+    resources:
+        mem_mb=3000,
+    script:
+        "../scripts/validate.py"
