@@ -1,6 +1,6 @@
 # facetsynth: single-view SVBRDF capture (Wang et al. 2008) as a Snakemake workflow.
 # Run from the repository root:  snakemake --cores 2
-# Stages and their contracts: docs/pipeline.md and ../shared/DESIGN.md.
+# Stages and their contracts: README.md, docs/decisions.md and ../shared/DESIGN.md.
 
 from snakemake.utils import min_version
 
@@ -15,9 +15,22 @@ include: "workflow/rules/capture.smk"
 include: "workflow/rules/hdr.smk"
 include: "workflow/rules/rectify.smk"
 include: "workflow/rules/reflectance.smk"
+include: "workflow/rules/synthesis.smk"
+include: "workflow/rules/params.smk"
+include: "workflow/rules/validate.smk"
+include: "workflow/rules/stencil.smk"
+
+
+def final_outputs(sample):
+    """What a user takes away: the fitted SVBRDF with its stencil models, and for a virtual
+    sample (whose held-out views the virtual rig can render) the held-out validation."""
+    outputs = [f"results/{sample}/svbrdf", f"results/{sample}/stencil_fit/metrics.json"]
+    if SAMPLE_SHEET[sample]["source"] == "virtual":
+        outputs.append(f"results/{sample}/validate/metrics.json")
+    return outputs
 
 
 rule all:
     input:
-        expand("results/{sample}/partial_ndf/metrics.json", sample=SAMPLES),
+        [path for sample in SAMPLES for path in final_outputs(sample)],
     default_target: True

@@ -18,6 +18,13 @@ def _check(args: argparse.Namespace) -> None:
           f"camera {m['camera']['width']}x{m['camera']['height']}")
 
 
+def _predict(args: argparse.Namespace) -> None:
+    from .predict import predict
+    out = predict(args.model_dir, args.manifest, args.out_dir, supersample=args.supersample)
+    print(f"{args.out_dir}: {len(out['frames'])} predicted HDR frame(s) and manifest.json "
+          f"(camera {out['camera']['width']}x{out['camera']['height']})")
+
+
 def _write_stencil_outputs(args: argparse.Namespace, model, scores: dict | None) -> dict:
     """Print or write the model's JSON parameters and its BRDF Explorer shader."""
     from .fileio import atomic_path
@@ -72,6 +79,14 @@ def main(argv: list[str] | None = None) -> int:
                                               "before importing it")
     check.add_argument("capture", help="capture folder holding manifest.json, or the manifest itself")
     check.set_defaults(run=_check)
+
+    pred = commands.add_parser("predict", help="render the frames a capture manifest describes from a fitted "
+                                               "SVBRDF folder: one HDR EXR per frame, no clipping")
+    pred.add_argument("model_dir", metavar="MODEL_DIR", help="fitted SVBRDF folder (results/SAMPLE/svbrdf)")
+    pred.add_argument("manifest", metavar="MANIFEST", help="capture manifest (or a folder holding manifest.json)")
+    pred.add_argument("out_dir", metavar="OUT_DIR", help="output folder: frames/NNNN.exr and manifest.json")
+    pred.add_argument("--supersample", type=int, default=1, help="sub-pixels per pixel side (box filter)")
+    pred.set_defaults(run=_predict)
 
     fit = commands.add_parser("stencil-fit", help="fit the adaptive highlight stencil model (paper 000) to a "
                                                   "measured BRDF: UTIA .bin/.exr, RGL .bsdf, MERL .binary")

@@ -21,7 +21,7 @@ import numpy as np
 
 __all__ = [
     "N_THETA", "N_PHI", "SHAPE", "THETA", "PHI", "LUMA",
-    "sph_to_dir", "utia_directions", "unwrap", "wrap", "luminance",
+    "sph_to_dir", "utia_directions", "sample_utia", "unwrap", "wrap", "luminance",
 ]
 
 N_THETA = 6
@@ -50,6 +50,19 @@ def utia_directions():
     wi.setflags(write=False)
     wo.setflags(write=False)
     return wi, wo
+
+
+def sample_utia(brdf_eval):
+    """Any BRDF on the UTIA grid: ``brdf_eval(wi, wo)`` (N, 3) x (N, 3) -> rho (N, 3) gives ``(3, 6, 48, 6, 48)``.
+
+    How a tabulated or analytic BRDF (a point of a fitted SVBRDF, a microfacet
+    model) is brought to the grid on which the stencil model is fitted and scored.
+    """
+    wi, wo = utia_directions()
+    rho = np.asarray(brdf_eval(wi.reshape(-1, 3), wo.reshape(-1, 3)), float)
+    if rho.shape != (wi[..., 0].size, 3):
+        raise ValueError(f"brdf_eval returned shape {rho.shape}, expected ({wi[..., 0].size}, 3)")
+    return np.ascontiguousarray(np.moveaxis(rho.reshape(wi.shape[:-1] + (3,)), -1, 0))
 
 
 def unwrap(brdf):
