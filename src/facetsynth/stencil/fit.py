@@ -124,9 +124,9 @@ def detect_axes(Y):
         phi = (_CAND[j] + np.clip(off, -0.5, 0.5) * (_CAND[1] - _CAND[0])) % np.pi
         axes.append(phi)
         rhos.append(float(rho_b[j]))
-        # project out the whole neighbourhood of the ridge (kernels within +-6 deg),
+        # project out the whole neighbourhood of the ridge (kernels within +-10 deg),
         # so a ridge wider or narrower than the kernel leaves no side lobes
-        nb = K[(j + np.arange(-6, 7)) % len(_CAND)]
+        nb = K[(j + np.arange(-10, 11)) % len(_CAND)]
         coef, *_ = np.linalg.lstsq(nb.T, R, rcond=None)
         R = R - nb.T @ coef
         d = np.abs((np.rad2deg(_CAND - phi) + 90.0) % 180.0 - 90.0)
