@@ -46,6 +46,18 @@ def marker_centroids(image: np.ndarray, expected: np.ndarray, radius: float) -> 
 
 # --- image comparison (held-out views, paper 002 sec. 6) ----------------------------
 
+def ssim_map(x: np.ndarray, y: np.ndarray, sigma: float = 1.5, data_range: float = 1.0) -> np.ndarray:
+    """Per-pixel SSIM (Wang et al. 2004: Gaussian window sigma, K1 0.01, K2 0.03) of two single-channel images."""
+    from scipy.ndimage import gaussian_filter
+
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
+    f = lambda a: gaussian_filter(a, sigma, truncate=3.5)  # noqa: E731
+    mx, my = f(x), f(y)
+    sxx, syy, sxy = f(x * x) - mx * mx, f(y * y) - my * my, f(x * y) - mx * my
+    return ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
+
+
 def image_scores(truth: np.ndarray, prediction: np.ndarray, mask: np.ndarray) -> dict[str, float]:
     """RMSE, PSNR and SSIM of predicted against true radiance over the sample's pixels.
 
@@ -61,8 +73,6 @@ def image_scores(truth: np.ndarray, prediction: np.ndarray, mask: np.ndarray) ->
       K2 0.03) of the channel-mean images divided by peak (data range 1),
       averaged over the sample's pixels and then over frames.
     """
-    from scipy.ndimage import gaussian_filter
-
     truth = np.asarray(truth, float)
     prediction = np.asarray(prediction, float)
     m = np.broadcast_to(mask, truth.shape[1:3])
@@ -70,15 +80,8 @@ def image_scores(truth: np.ndarray, prediction: np.ndarray, mask: np.ndarray) ->
     peak = float(t.max()) if t.size else 0.0
     rmse = float(np.sqrt(np.mean((p - t) ** 2))) if t.size else float("nan")
     psnr = float(20 * np.log10(peak / rmse)) if rmse > 0 and peak > 0 else float("inf")
-    c1, c2 = 0.01**2, 0.03**2
-    ssims = []
-    for q in range(truth.shape[0]):
-        x = truth[q].mean(axis=-1) / max(peak, 1e-30)
-        y = prediction[q].mean(axis=-1) / max(peak, 1e-30)
-        f = lambda a: gaussian_filter(a, 1.5, truncate=3.5)  # noqa: E731
-        mx, my = f(x), f(y)
-        sxx, syy, sxy = f(x * x) - mx * mx, f(y * y) - my * my, f(x * y) - mx * my
-        s = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
-        ssims.append(float(s[m].mean()))
+    scale = max(peak, 1e-30)
+    ssims = [float(ssim_map(truth[q].mean(axis=-1) / scale, prediction[q].mean(axis=-1) / scale)[m].mean())
+             for q in range(truth.shape[0])]
     return {"rmse": rmse, "rmse_normalised": rmse / peak if peak > 0 else float("nan"), "psnr_db": psnr,
             "ssim": float(np.mean(ssims)) if ssims else float("nan"), "peak": peak}

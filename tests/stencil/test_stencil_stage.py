@@ -12,7 +12,8 @@ import pytest
 from facetsynth.grid import DirectionGrid
 from facetsynth.plane import PlaneGrid
 from facetsynth.scene import Scene
-from facetsynth.stages.stencil_fit import axis_error_deg, cluster_metrics, fit_clusters, true_axes_deg
+from facetsynth.stages.stencil_fit import cluster_metrics, fit_clusters, true_axes_deg
+from facetsynth.stencil.fit import axis_error_deg
 from facetsynth.svbrdf import tabulate_truth
 
 PLANE = PlaneGrid(0.1, 0.1, 16, 16)

@@ -26,6 +26,7 @@ from ..errors import InputError
 from ..fileio import atomic_dir, write_json
 from ..svbrdf import SVBRDF
 from ..stencil import fit, model_to_json, to_brdf_explorer
+from ..stencil.fit import axis_error_deg
 from ..stencil.grid import sample_utia
 from ..stencil.model import evaluate_utia
 from ..stencil.scores import score_brdf
@@ -38,11 +39,6 @@ def true_axes_deg(alpha_u: np.ndarray, alpha_v: np.ndarray, phi_frame: np.ndarra
     """The stencil axes phi_a (deg) that a single microfacet lobe has: none if isotropic."""
     return [[] if np.isclose(au, av, rtol=1e-3) else [float((90.0 - np.rad2deg(pf)) % 180.0)]
             for au, av, pf in zip(alpha_u, alpha_v, phi_frame)]
-
-
-def axis_error_deg(found: list[float], truth: list[float]) -> float:
-    """Largest angle between matched axes (both sorted), modulo 180 deg."""
-    return max((abs((f - t + 90.0) % 180.0 - 90.0) for f, t in zip(sorted(found), sorted(truth))), default=0.0)
 
 
 def fit_clusters(model: SVBRDF, representatives: np.ndarray, members: np.ndarray,

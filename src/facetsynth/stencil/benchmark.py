@@ -59,11 +59,6 @@ def _synth(phis):
                            modes[-1].m if modes else (0.1, 0.1, 0.1), 4.0, 60.0, 0.4, 0.04)
 
 
-def _err(got, exp):
-    got, exp = sorted(got), sorted(exp)
-    return max((abs((g - e + 90) % 180 - 90) for g, e in zip(got, exp)), default=0.0)
-
-
 def synthetic_lines():
     lines = ["| case | true phi_a (deg) | found phi_a (deg) | modes ok | max phi_a error | fit time |",
              "|---|---|---|---|---|---|"]
@@ -74,7 +69,7 @@ def synthetic_lines():
         t = time.perf_counter() - t
         got = [float(np.rad2deg(x.phi_a)) for x in m.modes]
         lines.append(f"| stencil {len(phis)} modes | {list(phis)} | {[round(g, 2) for g in got]} | "
-                     f"{len(got) == len(phis)} | {_err(got, phis):.2f} | {t * 1000:.0f} ms |")
+                     f"{len(got) == len(phis)} | {F.axis_error_deg(got, phis):.2f} | {t * 1000:.0f} ms |")
     wi, wo = grid.utia_directions()
     for pf in [(10, 100), (35, 150), (60, 95)]:
         b = rho(wi, wo, np.full(3, 0.05), np.array([0.5, 0.3, 0.2]), 1.5, 0.05, 0.4, np.deg2rad(pf[0])) \
@@ -85,7 +80,7 @@ def synthetic_lines():
         exp = [(90 - p) % 180 for p in pf]
         got = [float(np.rad2deg(x.phi_a)) for x in m.modes]
         lines.append(f"| GGX 2 lobes, phi_frame {list(pf)} | {exp} | {[round(g, 2) for g in got]} | "
-                     f"{len(got) == 2} | {_err(got, exp):.2f} | {t * 1000:.0f} ms |")
+                     f"{len(got) == 2} | {F.axis_error_deg(got, exp):.2f} | {t * 1000:.0f} ms |")
     return "\n".join(lines)
 
 

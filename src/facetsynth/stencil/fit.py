@@ -48,7 +48,7 @@ from . import grid
 from .model import (COS_FLOOR, Mode, StencilModel, elevation_scale, half_vector, merge_modes,
                     mode_colour, mode_luminance, specular_factor, stencil, support_mask)
 
-__all__ = ["RHO_MIN", "MAX_MODES", "SEPARATION_DEG", "detect_axes", "fit", "fit_file"]
+__all__ = ["RHO_MIN", "MAX_MODES", "SEPARATION_DEG", "axis_error_deg", "detect_axes", "fit", "fit_file"]
 
 RHO_MIN = 0.10
 MAX_MODES = 4
@@ -98,6 +98,11 @@ def anisotropic_residual(Y):
     g = _geometry()
     Z = _rotate(Y, g["pv"])
     return _unrotate(Z - Z.mean(axis=1, keepdims=True), g["pv"])
+
+
+def axis_error_deg(found, truth):
+    """Largest angle (deg) between matched axes phi_a (both lists in deg, sorted), modulo 180 deg."""
+    return max((abs((f - t + 90.0) % 180.0 - 90.0) for f, t in zip(sorted(found), sorted(truth))), default=0.0)
 
 
 def detect_axes(Y):

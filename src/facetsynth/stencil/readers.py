@@ -46,14 +46,18 @@ def _check_finite(path, arr):
     return arr
 
 
+def _read_bytes(path):
+    try:
+        return path.read_bytes()
+    except OSError as e:
+        raise InputError(path, f"cannot read: {e.strerror}") from None
+
+
 # --------------------------------------------------------------------- UTIA
 def read_utia_bin(path):
     """UTIA ``.bin``: float64 ``(3, 6, 48, 6, 48)`` [channel, theta_i, phi_i, theta_v, phi_v]."""
     p = Path(path)
-    try:
-        raw = p.read_bytes()
-    except OSError as e:
-        raise InputError(p, f"cannot read: {e.strerror}") from None
+    raw = _read_bytes(p)
     if len(raw) != _UTIA_BYTES:
         what = "truncated" if len(raw) < _UTIA_BYTES else "too long"
         raise InputError(p, f"wrong size for a UTIA .bin ({what}): {len(raw)} bytes, expected {_UTIA_BYTES}")
@@ -71,12 +75,7 @@ def write_utia_bin(path, brdf):
 def read_utia_exr(path):
     """The 288x288 unwrapped BRDF image (paper 000, Fig. 1) -> ``(3, 6, 48, 6, 48)``."""
     p = Path(path)
-    try:
-        channels, _ = read_exr(p)
-    except InputError:
-        raise
-    except Exception as e:  # OpenEXR raises assorted types for bad files
-        raise InputError(p, f"not a readable EXR file ({e})") from None
+    channels, _ = read_exr(p)   # a missing or damaged file: InputError naming it
     img = channels.get("RGB")
     if img is None:
         raise InputError(p, f"no RGB channels (has {sorted(channels)})")
@@ -99,10 +98,7 @@ _DTYPE_CODES = {np.dtype(v).str.lstrip("|<"): k for k, v in _DTYPES.items()}
 def read_tensor_file(path):
     """Parse a Mitsuba ``tensor_file`` -> ``{name: ndarray}`` (copies, native order)."""
     p = Path(path)
-    try:
-        raw = p.read_bytes()
-    except OSError as e:
-        raise InputError(p, f"cannot read: {e.strerror}") from None
+    raw = _read_bytes(p)
     if raw[:12] != _MAGIC:
         raise InputError(p, "wrong magic: not a Mitsuba tensor_file")
     try:
@@ -322,10 +318,7 @@ _MERL_SCALE = np.array([1.0 / 1500, 1.15 / 1500, 1.66 / 1500])
 def read_merl_table(path):
     """MERL ``.binary`` -> scaled table ``(3, 90, 90, 180)`` [channel, theta_h, theta_d, phi_d]."""
     p = Path(path)
-    try:
-        raw = p.read_bytes()
-    except OSError as e:
-        raise InputError(p, f"cannot read: {e.strerror}") from None
+    raw = _read_bytes(p)
     if len(raw) < 12:
         raise InputError(p, "truncated: shorter than the 12-byte MERL header")
     dims = struct.unpack_from("<3i", raw, 0)

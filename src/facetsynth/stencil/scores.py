@@ -16,8 +16,8 @@ the reference's Rec. 709 luminance (exposure), so the reference's bright
 from __future__ import annotations
 
 import numpy as np
-from scipy.ndimage import gaussian_filter
 
+from ..metrics import ssim_map
 from . import grid
 
 __all__ = ["SRGB_TO_XYZ", "WHITE_D65", "exposure", "srgb_oetf", "rgb_to_lab", "ciede2000",
@@ -93,13 +93,7 @@ def psnr(a, b, peak=1.0):
 
 def ssim(x, y, sigma=1.5, L=1.0):
     """Mean SSIM (Wang et al. 2004) of two single-channel images in [0, L]."""
-    x, y = np.asarray(x, float), np.asarray(y, float)
-    c1, c2 = (0.01 * L) ** 2, (0.03 * L) ** 2
-    f = lambda z: gaussian_filter(z, sigma, truncate=3.5, mode="reflect")  # noqa: E731
-    mx, my = f(x), f(y)
-    sxx, syy, sxy = f(x * x) - mx * mx, f(y * y) - my * my, f(x * y) - mx * my
-    s = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
-    return float(np.mean(s))
+    return float(np.mean(ssim_map(x, y, sigma, L)))
 
 
 def score_images(ref_img, test_img):
