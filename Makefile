@@ -1,13 +1,19 @@
 # Two commands for a fresh machine with Python 3.11:
 #   make run   - set up .venv, install facetsynth, run the workflow on the demo sample
 #   make test  - set up .venv, install facetsynth with test extras, run the test suite
+#   make bench - run every preset (fast, balanced, accurate) on demo, wallpaper and satin and write
+#                results/bench/tradeoff.csv and tradeoff.png (about 40 min on 2 cores); restrict with
+#                make bench BENCH_PRESETS=fast BENCH_SCENES=demo, or BENCH_ARGS=--dry-run
 
 PYTHON ?= $(shell command -v python3.11 || command -v python3)
 VENV := .venv
 BIN := $(VENV)/bin
 CORES ?= 2
+BENCH_PRESETS ?= fast balanced accurate
+BENCH_SCENES ?= demo wallpaper satin
+BENCH_ARGS ?=
 
-.PHONY: run test clean
+.PHONY: run test bench clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -21,11 +27,18 @@ $(VENV)/.installed-test: pyproject.toml | $(BIN)/python
 	$(BIN)/python -m pip install --quiet -e ".[test]"
 	touch $@ $(VENV)/.installed-run
 
+$(VENV)/.installed-bench: pyproject.toml | $(BIN)/python
+	$(BIN)/python -m pip install --quiet -e ".[bench]"
+	touch $@ $(VENV)/.installed-run
+
 run: $(VENV)/.installed-run
 	$(BIN)/snakemake --cores $(CORES)
 
 test: $(VENV)/.installed-test
 	$(BIN)/python -m pytest -q
+
+bench: $(VENV)/.installed-bench
+	$(BIN)/python workflow/scripts/bench.py --cores $(CORES) --presets $(BENCH_PRESETS) --scenes $(BENCH_SCENES) $(BENCH_ARGS)
 
 clean:
 	rm -rf results/* .snakemake

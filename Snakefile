@@ -32,5 +32,5 @@ def final_outputs(sample):
 
 rule all:
     input:
-        [path for sample in SAMPLES for path in final_outputs(sample)],
+        [path for sample in MODEL_SAMPLES for path in final_outputs(sample)],
     default_target: True

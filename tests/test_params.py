@@ -102,10 +102,10 @@ def test_eta_with_noise_stays_close_and_unconstrained_data_fall_back_to_the_defa
 
 
 # --- the params stage on a stand-in for issue 4's outputs -------------------------------
-# cluster/synthesize do not exist yet: the stand-in makes one representative per
-# region with weight 1 and tabulates the region's TRUE NDF as its "completed" NDF,
-# in the partial NDF's scale (times mean ks and a Fresnel factor, as eq. 11 leaves it).
-# It tests the stage's plumbing and eta fit, not synthesis.
+# The stand-in makes one representative per region with weight 1 and tabulates the
+# region's TRUE NDF as its "completed" NDF, in the partial NDF's scale (times mean ks
+# and a Fresnel factor, as eq. 11 leaves it), with the cosine of that Fresnel factor
+# per cell as synthesis records it. It tests the stage's plumbing and eta fit, not synthesis.
 
 STANDIN_SCENE = """\
 name: standin
@@ -130,7 +130,11 @@ regions:
 
 
 def write_standin(folder, fresnel_in_ndf="lobe"):
-    """A rectified capture (geometry.json, separate/resample outputs) and cluster/synthesize stand-ins."""
+    """A rectified capture (geometry.json, separate/resample outputs) and cluster/synthesize stand-ins.
+
+    ``fresnel_in_ndf``: "lobe", the NDF carries F at |o.n| in every cell (as if synthesis had brought every
+    cell from a view at that cosine); "own", F(|o.h|) of the capture's own view everywhere (no synthesis).
+    """
     from facetsynth.fileio import write_exr, write_json
     from facetsynth.render import light_geometry
     from facetsynth.scene import Scene
@@ -173,10 +177,13 @@ def write_standin(folder, fresnel_in_ndf="lobe"):
     rt = truth.take(reps)
     d = rt.take((slice(None), None)).ndf(h)                                    # (2, T*F)
     if fresnel_in_ndf == "lobe":
-        f = microfacet.fresnel(o[reps, 2][:, None], rt.eta[:, None])
+        cosine = np.broadcast_to(o[reps, 2][:, None], d.shape)
     else:                                                                      # eq. 11 from the own view, everywhere
-        f = microfacet.fresnel(np.abs(np.sum(h * o[reps][:, None, :], -1)), rt.eta[:, None])
+        cosine = np.abs(np.sum(h * o[reps][:, None, :], -1))
+    f = microfacet.fresnel(cosine, rt.eta[:, None])
     np.save(folder / "ndf.npy", (rt.ks.mean(1)[:, None] * f * d).reshape((2,) + GRID.shape).astype(np.float32))
+    np.save(folder / "fresnel_cosine.npy", cosine.reshape((2,) + GRID.shape).astype(np.float32))
+    np.save(folder / "confidence.npy", np.ones((2,) + GRID.shape, np.float32))        # every cell synthesized
     write_json(folder / "grid.json", GRID.to_dict())
     return folder, truth
 
@@ -186,7 +193,9 @@ def run_params(folder, **kw):
     stage.run(geometry=folder / "geometry.json", kd_path=folder / "kd.exr", specular=folder / "specular.npy",
               valid=folder / "valid.npy", colour=folder / "colour.npy",
               representatives=folder / "representatives.npy", neighbours=folder / "neighbours.npy",
-              weights=folder / "weights.npy", ndf=folder / "ndf.npy", grid_path=folder / "grid.json",
+              weights=folder / "weights.npy", ndf=folder / "ndf.npy", fresnel_cosine=folder / "fresnel_cosine.npy",
+              synthesis_confidence=folder / "confidence.npy",
+              grid_path=folder / "grid.json",
               svbrdf_out=folder / "svbrdf", metrics_out=folder / "metrics.json", **kw)
     import json
     return json.loads((folder / "metrics.json").read_text())
@@ -197,12 +206,21 @@ def test_params_stage_recovers_eta_and_ks_per_region_from_grazing_data(tmp_path)
     folder, truth = write_standin(tmp_path / "lobe")
     metrics = run_params(folder)
     model = SVBRDF.load(folder / "svbrdf")
-    assert metrics["representatives_eta_fitted"] == 2 and model.eta_fitted.all()
+    assert metrics["materials"] == 2 and metrics["representatives_eta_fitted"] == 2 and model.eta_fitted.all()
     assert np.abs(model.eta - truth.eta).max() < 0.05                     # measured 0.01
     assert metrics["eta_abs_error_median"] < 0.03
-    np.testing.assert_allclose(model.ks, truth.ks, rtol=0.03)            # ks / F(|o.n|, eta): the physical ks
+    np.testing.assert_allclose(model.ks, truth.ks, rtol=0.03)            # D / F(cosine, eta): the physical ks
     np.testing.assert_allclose(model.kd, truth.kd, rtol=1e-5)
     assert metrics["grazing_samples"] > 100
+
+
+def test_params_stage_keeps_the_default_where_the_ndf_holds_its_own_views_fresnel(tmp_path):
+    """An NDF that carries F(|o.h|) of the capture's own view in every cell explains the grazing samples
+    for any eta (c = |i.h| = |o.h|): eta is not identifiable, and the stage says so rather than fit noise."""
+    folder, truth = write_standin(tmp_path / "own", fresnel_in_ndf="own")
+    metrics = run_params(folder, eta_default=1.45)
+    assert metrics["representatives_eta_fitted"] == 0
+    assert all(not r["constrained"] and r["reason"] for r in metrics["per_material"])
 
 
 def test_params_stage_without_grazing_coverage_keeps_and_records_the_default(tmp_path):
@@ -215,7 +233,7 @@ def test_params_stage_without_grazing_coverage_keeps_and_records_the_default(tmp
     assert metrics["representatives_eta_fitted"] == 0 and metrics["points_eta_fitted_fraction"] == 0.0
     assert not model.eta_fitted.any()
     np.testing.assert_allclose(model.eta, 1.45, rtol=1e-7)           # float32 EXR
-    assert all("samples" in r["reason"] for r in metrics["per_representative"])
+    assert all("samples" in r["reason"] for r in metrics["per_material"])
     assert (read_exr(folder / "svbrdf" / "eta.exr")[0]["eta_fitted"] == 0).all()
     assert model.info["eta"]["default"] == 1.45
 

@@ -178,6 +178,32 @@ def test_synthesis_completes_an_anisotropic_ggx_from_rotated_partial_copies(opti
     assert np.isfinite(done.ndf).all() and (done.ndf >= 0).all()
 
 
+def test_synthesis_carries_the_cosine_of_the_fresnel_factor_each_cell_holds():
+    """Eq. 11 leaves F(|o.h|) in a partial NDF. A cell merged from an exemplar rotated by phi holds that
+    exemplar's data at h' = R(phi) h, seen from o: its Fresnel cosine is |o . R(phi) h|. Own cells keep
+    |o . h|; cells that both cover hold the eq. 16 weighted mean; every cell ends in [0, 1]."""
+    frames = np.linspace(0, 2 * np.pi, 64, endpoint=False)
+    d, w = partial(frames)
+    o = np.array([0.0, np.sin(np.radians(50.0)), np.cos(np.radians(50.0))])
+    views = np.tile(o, (64, 1))
+    target = syn.hemisphere_target(w[0] > 0, GRID)
+    done = syn.complete(d[0], w[0], syn.ExemplarSpectra(d, w, GRID), d, w, GRID, target, exclude=0,
+                        max_iterations=1, refine=False, view=o, exemplars_view=views)
+    (merge,) = done.merges
+    phi = merge["shift"] * GRID.d_phi
+    rz = np.array([[np.cos(phi), -np.sin(phi), 0.0], [np.sin(phi), np.cos(phi), 0.0], [0.0, 0.0, 1.0]])
+    h = GRID.directions
+    own, theirs = np.abs(h @ o), np.abs((h @ rz.T) @ o)
+    _, wc = syn.rotate_tuple(d[merge["exemplar"]], w[merge["exemplar"]], GRID, merge["shift"])
+    only_own, only_theirs, both = (w[0] > 0) & (wc == 0), (w[0] == 0) & (wc > 0), (w[0] > 0) & (wc > 0)
+    assert only_own.sum() > 20 and only_theirs.sum() > 20 and both.sum() > 20
+    np.testing.assert_allclose(done.fresnel_cosine[only_own], own[only_own], atol=1e-9)
+    np.testing.assert_allclose(done.fresnel_cosine[only_theirs], theirs[only_theirs], atol=1e-9)
+    expected = (w[0] * own + wc * theirs) / np.where(both, w[0] + wc, 1.0)
+    np.testing.assert_allclose(done.fresnel_cosine[both], expected[both], atol=1e-9)
+    assert np.isfinite(done.fresnel_cosine).all() and done.fresnel_cosine.min() >= 0 and done.fresnel_cosine.max() <= 1
+
+
 def test_one_frame_everywhere_is_reported_not_invented():
     """brushed: every point has the same frame, so no rotated exemplar matches; synthesis stalls."""
     d, w = partial(np.full(32, 0.52), scale=np.linspace(0.5, 1.0, 32), alpha=(0.05, 0.3))

@@ -9,10 +9,12 @@ distances are eq. 15's (:func:`facetsynth.synthesis.pairwise_distance`).
 from __future__ import annotations
 
 import logging
+import time
 import warnings
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.cluster.hierarchy import fcluster, linkage
 
 from .grid import DirectionGrid
 from .synthesis import SUPPORT, TINY, pairwise_distance
@@ -82,6 +84,74 @@ def kmeans(feats: np.ndarray, d: np.ndarray, w: np.ndarray, grid: DirectionGrid,
         reps.append(int(members[int(np.argmin(dist))]))
     return Clustering(labels=new_labels, representatives=np.asarray(reps, np.int64), n_requested=int(n_clusters),
                       distinct=distinct)
+
+
+def k_ladder(k_min: int, k_max: int, ratio: float = 2 ** 0.5) -> list[int]:
+    """Cluster counts on a geometric ladder from ``k_min`` to ``k_max`` (both included)."""
+    k_min, k_max = max(1, int(k_min)), max(1, int(k_max))
+    if k_max <= k_min:
+        return [k_min]
+    n = int(np.ceil(np.log(k_max / k_min) / np.log(ratio)))
+    return sorted({int(round(k_min * ratio**i)) for i in range(n)} | {k_min, k_max})
+
+
+@dataclass(frozen=True)
+class KChoice:
+    k: int                       # chosen number of clusters
+    ladder: list                 # k scanned
+    distortion: list             # within-cluster distortion / total variance at each k (eq. 15 features)
+    rule: str                    # how k was chosen, in words
+    subsample: int               # rows the scan clustered
+    seconds: float = 0.0         # time the scan took
+
+
+def choose_k(feats: np.ndarray, k_min: int, k_max: int, tolerance: float, subsample: int = 2048,
+             seed: int = 0, components: int = 64) -> KChoice:
+    """The smallest k on a geometric ladder whose k-means distortion falls below ``tolerance``.
+
+    Distortion: sum over rows of |f - centre(f)|^2 (the features' squared
+    distance approximates eq. 15's numerator) over the total variance sum
+    |f - mean|^2, on an evenly strided ``subsample`` of the rows. For speed
+    the scan clusters a PCA projection onto ``components`` dimensions, then
+    scores each partition in the full feature space. eq. 15 is not rotation
+    invariant, so one material seen in many frames (a turned disc) counts
+    as many shapes. If no k up to ``k_max`` reaches the tolerance, k_max.
+    """
+    from sklearn.cluster import KMeans
+    from sklearn.decomposition import PCA
+
+    t0 = time.perf_counter()
+    x = np.asarray(feats[:: max(1, int(np.ceil(len(feats) / subsample)))], np.float64)
+    n = len(x)
+    ladder = [k for k in k_ladder(k_min, k_max) if k <= n] or [max(1, min(k_min, n))]
+    rule = (f"smallest k on the ladder {ladder[0]}..{ladder[-1]} (ratio sqrt 2) whose k-means distortion "
+            f"/ total variance <= {tolerance:g} (else {ladder[-1]})")
+    total = float(np.sum((x - x.mean(axis=0)) ** 2))
+    if total <= TINY:
+        return KChoice(k=ladder[0], ladder=ladder[:1], distortion=[0.0], rule=rule, subsample=n,
+                       seconds=time.perf_counter() - t0)
+    y = x
+    if x.shape[1] > components and n > components:
+        y = PCA(n_components=components, random_state=seed, svd_solver="randomized").fit_transform(x)
+    curve = []
+    chosen = ladder[-1]
+    for k in ladder:
+        if k == 1:
+            labels = np.zeros(n, int)
+        else:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                labels = KMeans(n_clusters=k, random_state=seed, n_init=1).fit_predict(y)
+        within = 0.0
+        for c in np.unique(labels):
+            m = x[labels == c]
+            within += float(np.sum((m - m.mean(axis=0)) ** 2))
+        curve.append(within / total)
+        if curve[-1] <= tolerance:
+            chosen = k
+            break
+    return KChoice(k=int(chosen), ladder=ladder[:len(curve)], distortion=curve, rule=rule, subsample=n,
+                   seconds=time.perf_counter() - t0)
 
 
 def constrained_least_squares(a: np.ndarray, b: np.ndarray, ridge: float = 0.0) -> np.ndarray:
@@ -159,3 +229,16 @@ def interpolation_weights(d: np.ndarray, w: np.ndarray, rep_d: np.ndarray, rep_w
             neighbours[row, :keep.size] = keep
             weights[row, :keep.size] = sol
     return neighbours, weights, lam
+
+
+def material_groups(kd_rep: np.ndarray, tolerance: float) -> np.ndarray:
+    """Materials (R,) int labels: representatives whose diffuse albedos kd (R, 3) agree within
+    ``tolerance`` in every channel on a log scale (complete linkage, scipy), i.e. the same material at
+    other rotations. eta is a property of the material (sec. 3: the facets share one refraction index),
+    and one representative's grazing samples constrain it too weakly (docs/decisions.md)."""
+    kd_rep = np.asarray(kd_rep, float)
+    if len(kd_rep) < 2:
+        return np.zeros(len(kd_rep), np.intp)
+    features = np.log(np.clip(kd_rep, 1e-3, None))
+    tree = linkage(features, method="complete", metric="chebyshev")
+    return fcluster(tree, t=np.log1p(tolerance), criterion="distance").astype(np.intp) - 1

@@ -43,9 +43,12 @@ def merge_exposures(values: np.ndarray, times: np.ndarray, sensor: SensorModel) 
     is at the noise floor is dark: it keeps that exposure's estimate, so a
     noise spike in a short exposure cannot pose as signal.
 
+    A NaN or +Inf reading (a dead or hot sensor value) is unusable like a
+    clipped one: the pixel is merged from its other exposures.
+
     Returns (radiance, saturated): ``saturated`` (...) is True where every
-    exposure of some channel clipped; there the radiance is the lower bound
-    clip level / t_min. Never NaN.
+    exposure of some channel clipped (or was NaN / Inf); there the radiance is
+    the lower bound clip level / t_min. Never NaN.
     """
     values = np.asarray(values, dtype=np.float64)
     times = np.asarray(times, dtype=np.float64).reshape((-1,) + (1,) * (values.ndim - 1))
@@ -65,7 +68,7 @@ def merge_exposures(values: np.ndarray, times: np.ndarray, sensor: SensorModel) 
     variance = sensor.read_sigma**2 + sensor.shot_gain * times * first_pass + 1e-30
     weight = np.where(usable, times**2 / variance, 0.0)
     weight_sum = weight.sum(axis=0)
-    merged = np.divide((weight * values / times).sum(axis=0), weight_sum,
+    merged = np.divide((weight * np.where(usable, values, 0.0) / times).sum(axis=0), weight_sum,
                        out=np.zeros(values.shape[1:]), where=weight_sum > 0)
 
     lower_bound = sensor.clip_level / times.min() if sensor.saturation is not None else 0.0

@@ -17,14 +17,14 @@ Two remarks on eqs. 19-20 as printed:
   normalisation of D and eq. 6 the factor is 4 (docs/decisions.md, partial
   NDF); 4 is used here too, so that F_m = F exactly for data made by eq. 6.
 * The partial NDF of eq. 11 assumes F = 1, so the NDF that synthesis completes
-  carries the Fresnel factor of the capture's view: ks D_c(h) = ks_true
-  F(c_src) D_true(h). Eq. 19 compared with the absolute F_c of eq. 3 then has
-  no solution (F_m ~ 1, F_c ~ 0.04-0.3). The fit therefore supports a
-  reference: F_m = F_c(c, eta) / F_c(c_ref, eta), where c_ref is the cosine
-  at which the NDF's scale absorbed F. ``reference="lobe"`` takes c_ref =
-  |o . n| (the cosine at h = n, where a glossy NDF holds its mass), and the
-  physical ks is then ks / F_c(c_ref, eta). ``reference=None`` is eq. 19 as
-  printed, right when D and ks are free of Fresnel (e.g. an analytic material).
+  carries a Fresnel factor in every cell: ks D_c(h) = ks_true F(c_ref(h))
+  D_true(h), with c_ref(h) = |o . h| of the view (rotated) that cell came from
+  (synthesis carries it along, :func:`facetsynth.synthesis.complete`). Eq. 19
+  compared with the absolute F_c of eq. 3 then has no solution (F_m ~ 1, F_c
+  ~ 0.04-0.3). The fit therefore takes F_m = F_c(c, eta) / F_c(c_ref, eta),
+  and D_true = D_c / F_c(c_ref, eta) once eta is known. ``c_ref=None`` is
+  eq. 19 as printed, right when D and ks are free of Fresnel (e.g. an
+  analytic material).
 """
 
 from __future__ import annotations
@@ -106,8 +106,7 @@ def _model(eta: float, c: np.ndarray, c_ref: np.ndarray | None) -> np.ndarray:
 
 def fit_eta(f_measured: np.ndarray, c: np.ndarray, c_ref: np.ndarray | None = None,
             weight: np.ndarray | None = None, bounds: tuple[float, float] = ETA_BOUNDS,
-            default: float = ETA_DEFAULT, min_samples: int = 8, max_std: float = 0.15,
-            log_residuals: bool = False) -> EtaFit:
+            default: float = ETA_DEFAULT, min_samples: int = 8, max_std: float = 0.15) -> EtaFit:
     """eta minimising eq. 19, sum_j w_j |F_c(c_j, eta) / F_c(c_ref_j, eta) - F_m,j|^2, by Levenberg-Marquardt.
 
     ``c`` = |i . h| of each sample; ``c_ref`` (optional) the cosine at which the
@@ -118,19 +117,15 @@ def fit_eta(f_measured: np.ndarray, c: np.ndarray, c_ref: np.ndarray | None = No
     from the best of a coarse scan so that LM starts in the right basin. The
     fit counts as unconstrained (``default`` returned) with fewer than
     ``min_samples`` samples, or when the standard error of eta exceeds
-    ``max_std`` (the data hardly depend on eta), or at a bound. With
-    ``log_residuals`` the residuals are log(model) - log(F_m) (samples with
-    F_m <= 0 dropped): measured F_m scatter multiplicatively (the NDF's own
-    errors divide into eq. 20), and the linear form lets the largest values
-    dominate.
+    ``max_std`` (the data hardly depend on eta), or at a bound. (Residuals in
+    log F were measured too: on pooled pipeline data they bias eta upwards,
+    1.91 against 1.81 for a true 1.8, docs/decisions.md.)
     """
     f_m = np.asarray(f_measured, float).ravel()
     c = np.asarray(c, float).ravel()
     cr = None if c_ref is None else np.broadcast_to(np.asarray(c_ref, float).ravel(), c.shape)
     w = np.ones_like(c) if weight is None else np.broadcast_to(np.asarray(weight, float).ravel(), c.shape)
     ok = np.isfinite(f_m) & np.isfinite(c) & (w > 0)
-    if log_residuals:
-        ok &= f_m > 0
     n = int(ok.sum())
     if n < min_samples:
         return EtaFit(default, False, np.inf, n, np.nan, f"{n} usable grazing samples (< {min_samples})")
@@ -141,17 +136,11 @@ def fit_eta(f_measured: np.ndarray, c: np.ndarray, c_ref: np.ndarray | None = No
     def eta_of(u):
         return lo + (hi - lo) / (1.0 + np.exp(-u))
 
-    target = np.log(f_m) if log_residuals else f_m
-
-    def model(e):
-        value = _model(e, c, cr)
-        return np.log(np.maximum(value, 1e-300)) if log_residuals else value
-
     def residual(u):
-        return sw * (model(eta_of(u[0])) - target)
+        return sw * (_model(eta_of(u[0]), c, cr) - f_m)
 
     scan = np.linspace(lo, hi, 60)[1:-1]
-    costs = [np.sum(sw**2 * (model(e) - target) ** 2) for e in scan]
+    costs = [np.sum(sw**2 * (_model(e, c, cr) - f_m) ** 2) for e in scan]
     e0 = scan[int(np.argmin(costs))]
     u0 = np.log((e0 - lo) / (hi - e0))
     sol = least_squares(residual, [u0], method="lm", xtol=1e-12, ftol=1e-12)
@@ -164,7 +153,7 @@ def fit_eta(f_measured: np.ndarray, c: np.ndarray, c_ref: np.ndarray | None = No
     j = sol.jac[:, 0] / max(deta_du, 1e-300)
     jtj = float(j @ j)
     std = float(np.sqrt(sigma2 / jtj)) if jtj > 0 else np.inf
-    rms = float(np.sqrt(np.mean((r / sw) ** 2)))   # in log units with log_residuals
+    rms = float(np.sqrt(np.mean((r / sw) ** 2)))
     if not np.isfinite(eta) or eta - lo < 1e-3 * (hi - lo) or hi - eta < 1e-3 * (hi - lo):
         return EtaFit(default, False, std, n, rms, f"fit ran to the bound ({eta:.3f})")
     if not std <= max_std:

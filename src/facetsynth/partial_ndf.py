@@ -119,6 +119,15 @@ def fit(specular_slice: np.ndarray, coverage: np.ndarray, view: np.ndarray, grid
     return PartialNDF(ndf=d, confidence=w.reshape(shape), iterations=iterations, converged=~active)
 
 
+def fresnel_cosine(view: np.ndarray, grid: DirectionGrid) -> np.ndarray:
+    """|o . h| on the grid (..., T, F) for views o (..., 3): the cosine of the Fresnel factor that eq. 11
+    (F = 1 assumed) leaves in the partial NDF at each half vector h (for a mirror configuration
+    |i . h| = |o . h|)."""
+    view = np.asarray(view, float)
+    c = np.abs(np.einsum("...k,tpk->...tp", view, grid.directions))
+    return c
+
+
 def recoverable_ndf(ks: np.ndarray, eta: np.ndarray, true_ndf: np.ndarray, view: np.ndarray,
                     grid: DirectionGrid) -> np.ndarray:
     """What eq. 11 recovers from perfect data and the true S: mean(ks) F(|o . h|, eta) D(h).
@@ -127,10 +136,8 @@ def recoverable_ndf(ks: np.ndarray, eta: np.ndarray, true_ndf: np.ndarray, view:
     the Fresnel factor and the specular albedo stay in D until sec. 5.4.
     ``ks`` (P, 3), ``eta`` (P,), ``true_ndf`` (P, T, F), ``view`` (P, 3).
     """
-    h = grid.directions.reshape(1, -1, 3)
-    c = np.abs(np.sum(h * view[:, None, :], axis=-1))
-    scale = ks.mean(axis=-1)[:, None] * fresnel(c, eta[:, None])
-    return (scale * true_ndf.reshape(len(view), -1)).reshape(true_ndf.shape)
+    c = fresnel_cosine(view, grid)
+    return ks.mean(axis=-1)[:, None, None] * fresnel(c, eta[:, None, None]) * true_ndf
 
 
 def relative_l2(estimate: np.ndarray, reference: np.ndarray, mask: np.ndarray, grid: DirectionGrid) -> np.ndarray:

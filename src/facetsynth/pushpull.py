@@ -60,14 +60,15 @@ def push_pull(value_sum: np.ndarray, weight_sum: np.ndarray) -> np.ndarray:
 
 
 def _pool(a: np.ndarray) -> np.ndarray:
-    """Sum 2 x 2 children (an odd last ring or sector is padded by repetition)."""
+    """Sum 2 x 2 children; an odd last ring or sector is summed alone (padded with zeros): a coarse
+    cell's children are exactly fine cells 2j and 2j + 1, whatever the size."""
     if a.shape[-2] > 1:
         if a.shape[-2] % 2:
-            a = np.concatenate([a, a[..., -1:, :]], axis=-2)
+            a = np.concatenate([a, np.zeros_like(a[..., -1:, :])], axis=-2)
         a = a[..., 0::2, :] + a[..., 1::2, :]
     if a.shape[-1] > 1:
         if a.shape[-1] % 2:
-            a = np.concatenate([a, a[..., :1]], axis=-1)
+            a = np.concatenate([a, np.zeros_like(a[..., :1])], axis=-1)
         a = a[..., 0::2] + a[..., 1::2]
     return a
 
@@ -79,10 +80,14 @@ def _upsample(a: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 
 
 def _resize_axis(a: np.ndarray, n: int, axis: int, periodic: bool) -> np.ndarray:
+    """Linear interpolation along ``axis`` from the level :func:`_pool` made (m = ceil(n / 2) cells, coarse
+    cell j over fine cells 2j, 2j + 1) back to n cells."""
     m = a.shape[axis]
     if m == n:
         return a
-    x = (np.arange(n) + 0.5) * m / n - 0.5          # fine cell centres in coarse coordinates
+    if m != (n + 1) // 2:
+        raise ValueError(f"push-pull level of {m} cells does not pool {n}")
+    x = (np.arange(n) + 0.5) / 2 - 0.5              # fine cell centres in coarse coordinates
     if not periodic:
         x = np.clip(x, 0.0, m - 1.0)
     i0 = np.floor(x).astype(np.intp)

@@ -29,7 +29,8 @@ class Scene:
     ndf: str
     regions: tuple[dict[str, Any], ...]
     marker_radius: float
-    marker_positions: np.ndarray  # (M, 2)
+    marker_positions: np.ndarray  # (M, 2), on the rig's plane (turned with the sample)
+    rotation_deg: float = 0.0     # the sample turned about its normal (a turntable), counter-clockwise
 
     @classmethod
     def load(cls, path: str | Path) -> "Scene":
@@ -39,23 +40,28 @@ class Scene:
     def from_dict(cls, d: Any, path: str | Path | None = None) -> "Scene":
         validate(d, "scene.schema.json", path, "scene")
         markers = d.get("markers", {"radius": 1.0, "positions": []})
+        rotation = float(d.get("rotation_deg", 0.0))
+        positions = np.asarray(markers["positions"], float).reshape(-1, 2)
         return cls(name=d["name"], size=(float(d["size"][0]), float(d["size"][1])), ndf=d.get("ndf", "ggx"),
                    regions=tuple(d["regions"]), marker_radius=float(markers["radius"]),
-                   marker_positions=np.asarray(markers["positions"], float).reshape(-1, 2))
+                   marker_positions=_turn(positions, rotation), rotation_deg=rotation)
 
     def parameters(self, xy: np.ndarray) -> "MaterialMaps":
-        """The true SVBRDF parameters at sample-plane points ``xy`` (..., 2)."""
+        """The true SVBRDF parameters at plane points ``xy`` (..., 2) (the rig's frame: a turned sample
+        shows there its point turned back, with its frames turned by the rotation)."""
         shape = xy.shape[:-1]
+        turn = np.radians(self.rotation_deg)
+        xy_sample = _turn(xy, -self.rotation_deg)
         region = np.full(shape, -1, dtype=np.int16)
         kd, ks = np.zeros(shape + (3,)), np.zeros(shape + (3,))
         eta, alpha_u, alpha_v, phi = (np.ones(shape), np.ones(shape), np.ones(shape), np.zeros(shape))
         for index, r in enumerate(self.regions):
-            inside = _inside(r["where"], xy)
+            inside = _inside(r["where"], xy_sample)
             region[inside] = index
             kd[inside], ks[inside] = r["kd"], r["ks"]
             eta[inside] = r["eta"]
             alpha_u[inside], alpha_v[inside] = r["alpha"]
-            phi[inside] = _frame_azimuth(r["frame"], xy)[inside]
+            phi[inside] = _frame_azimuth(r["frame"], xy_sample)[inside] + turn
         on_marker = self.marker_mask(xy)
         kd[on_marker], ks[on_marker] = 0.0, 0.0
         region[on_marker] = -1
@@ -70,7 +76,8 @@ class Scene:
         return mask
 
     def on_sample(self, xy: np.ndarray) -> np.ndarray:
-        """True where a point lies on the sample (inside its width x height)."""
+        """True where a point lies on the sample (inside its width x height, turned with it)."""
+        xy = _turn(xy, -self.rotation_deg)
         return (np.abs(xy[..., 0]) <= self.size[0] / 2) & (np.abs(xy[..., 1]) <= self.size[1] / 2)
 
 
@@ -100,6 +107,14 @@ class MaterialMaps:
         """The maps at a subset of points (any numpy index)."""
         return MaterialMaps(self.kd[index], self.ks[index], self.eta[index], self.alpha_u[index],
                             self.alpha_v[index], self.phi_frame[index], self.region[index], self.ndf_kind)
+
+
+def _turn(xy: np.ndarray, degrees: float) -> np.ndarray:
+    """Points (..., 2) turned counter-clockwise by ``degrees`` about the origin."""
+    if degrees == 0.0:
+        return xy
+    c, s = np.cos(np.radians(degrees)), np.sin(np.radians(degrees))
+    return np.stack([c * xy[..., 0] - s * xy[..., 1], s * xy[..., 0] + c * xy[..., 1]], axis=-1)
 
 
 def _inside(where: dict[str, Any], xy: np.ndarray) -> np.ndarray:

@@ -28,9 +28,11 @@ def diffuse_minimum(rho: np.ndarray, radiance: np.ndarray, valid: np.ndarray, th
     """Eq. 9: rho_d(x) = min_q { rho(x, i_q, o) | I_q(x) > threshold * I_avg(x) }, per channel.
 
     I is the channel mean of the radiance; I_avg its mean over the valid
-    samples of the point. A point with no qualifying sample (fully dark, or
-    no valid sample) gets rho_d = 0. Returns (P, 3); kd = pi rho_d.
+    samples of the point. A sample whose rho or radiance is NaN or Inf counts
+    as invalid. A point with no qualifying sample (fully dark, or no valid
+    sample) gets rho_d = 0. Returns (P, 3); kd = pi rho_d.
     """
+    valid = valid & np.isfinite(rho).all(axis=-1) & np.isfinite(radiance).all(axis=-1)
     intensity = radiance.mean(axis=-1)
     n_valid = valid.sum(axis=1)
     average = np.divide(np.where(valid, intensity, 0.0).sum(axis=1), n_valid,

@@ -197,8 +197,9 @@ class SVBRDF:
         row = np.clip(row, 0, self.plane.rows - 1).astype(np.intp)
         return row * self.plane.cols + col, inside
 
-    def _mixture(self, table: np.ndarray, grid: DirectionGrid, index: np.ndarray, d: np.ndarray) -> np.ndarray:
-        """sum_k w(x, k) table[j(x, k)](d) for points ``index`` (N,) and directions d (N, 3)."""
+    def mixture(self, table: np.ndarray, grid: DirectionGrid, index: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """sum_k w(x, k) table[j(x, k)](d) for points ``index`` (N,) and directions d (N, 3); ``table`` is
+        (R, cells of ``grid``), one flattened table per representative."""
         cells, bw = _bilinear(grid, d)
         out = np.zeros(len(index))
         for k in range(self.neighbours.shape[1]):
@@ -213,11 +214,11 @@ class SVBRDF:
 
     def ndf_at(self, index: np.ndarray, h: np.ndarray) -> np.ndarray:
         """The per-point normalised NDF D(x, h) (eq. 18 mixture, clipped at 0) at points (N,), half vectors (N, 3)."""
-        return np.maximum(self._mixture(self._ndf_flat, self.grid, index, h), 0.0)
+        return np.maximum(self.mixture(self._ndf_flat, self.grid, index, h), 0.0)
 
     def area_at(self, index: np.ndarray, k: np.ndarray) -> np.ndarray:
         """A(x, k) of eq. 5 (the mixture's projected area, floored at 1e-6) at points (N,), directions (N, 3)."""
-        return np.maximum(self._mixture(self._area_flat, self.shadowing_grid, index, k), 1e-6)
+        return np.maximum(self.mixture(self._area_flat, self.shadowing_grid, index, k), 1e-6)
 
     def specular_terms(self, index: np.ndarray, wi: np.ndarray, wo: np.ndarray,
                        area_o: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:

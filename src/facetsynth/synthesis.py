@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .grid import DirectionGrid
+from .partial_ndf import fresnel_cosine
 from .pushpull import push_pull
 
 log = logging.getLogger(__name__)
@@ -259,6 +260,20 @@ def hemisphere_target(masks: np.ndarray, grid: DirectionGrid) -> np.ndarray:
     return np.broadcast_to(rings[:, None], grid.shape)
 
 
+def hold_beyond_reach(table: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """(..., T, F) tables with every ring past the last ring of ``target`` set to that ring's values
+    (per azimuth). Push-pull alone fills those rings from whichever coarse level first holds data, which
+    depends on where the level boundaries fall: on a 24-ring grid that was the average of the whole
+    lobe (demo: NDF error 0.69 against 0.15 on 32 rings, where a level boundary sits at 45 deg)."""
+    rings = np.flatnonzero(np.any(target, axis=-1))
+    if rings.size == 0 or rings.max() >= table.shape[-2] - 1:
+        return table
+    last = int(rings.max())
+    out = np.array(table, dtype=float, copy=True)
+    out[..., last + 1:, :] = out[..., last:last + 1, :]
+    return out
+
+
 def extend_beyond_reach(ndf: np.ndarray, target: np.ndarray, grid: DirectionGrid, back: int = 2) -> np.ndarray:
     """Extend (..., T, F) NDFs past the last ring of ``target`` by log-linear extrapolation in theta.
 
@@ -391,6 +406,7 @@ class Completion:
     stalled: bool                    # stopped because the best match was too dissimilar (not merged)
     merges: list = field(default_factory=list)   # dicts: exemplar, shift, relative_error, overlap, merged
     fallbacks: int = 0               # ANN iterations that fell back to the exact search
+    fresnel_cosine: np.ndarray | None = None   # (T, F) cosine of the Fresnel factor each cell carries
 
 
 def _refine(ed: np.ndarray, ew: np.ndarray, shift: int, d, w, grid, lo: float, hi: float) -> tuple[float, Match, float]:
@@ -422,12 +438,94 @@ def _refine(ed: np.ndarray, ew: np.ndarray, shift: int, d, w, grid, lo: float, h
     return best[0], best[2], best[3]
 
 
+def ring_means(values: np.ndarray, w: np.ndarray, grid: DirectionGrid) -> tuple[np.ndarray, np.ndarray]:
+    """W dw-weighted mean of ``values`` (..., T, F) over the domain cells of each theta ring.
+
+    Returns (means (..., T), covered (..., T) bool: rings the domain touches;
+    the mean of an untouched ring is 0).
+    """
+    w = np.clip(np.asarray(w, float), 0.0, None)
+    ww = np.where(w > SUPPORT, w, 0.0) * grid.solid_angles
+    total = ww.sum(axis=-1)
+    covered = total > 0
+    means = np.sum(ww * np.asarray(values, float), axis=-1) / np.where(covered, total, 1.0)
+    return np.where(covered, means, 0.0), covered
+
+
+def anisotropy(d: np.ndarray, w: np.ndarray, grid: DirectionGrid) -> np.ndarray:
+    """Relative L2 deviation (...,) of a partial NDF from azimuthal symmetry, over its domain.
+
+    Per theta ring, D is fitted on the ring's domain cells (weights W dw) by
+    a + b cos(phi) + c sin(phi): its ring mean plus the first azimuthal
+    harmonic. The statistic is sqrt(int_Omega W (D - fit)^2 dw / int_Omega
+    W D^2 dw). 0 for an isotropic NDF whatever its domain; an anisotropic
+    microfacet NDF (D(h) = D(R(pi) h): GGX, Beckmann, Ward) varies with
+    2 phi and higher harmonics, which the fit cannot absorb on rings the
+    domain covers all round. The first harmonic is left out because what a
+    single view adds along a ring (the Fresnel factor of eq. 11, shadowing,
+    the shift of a narrow resampled highlight) varies mostly with the
+    azimuth relative to the view's. An empty or all-zero tuple gives inf.
+    Measured values and the threshold: docs/decisions.md.
+    """
+    d = np.asarray(d, float)
+    w = np.clip(np.asarray(w, float), 0.0, None)
+    ww = np.where(w > SUPPORT, w, 0.0) * grid.solid_angles
+    basis = np.stack([np.ones_like(grid.phi), np.cos(grid.phi), np.sin(grid.phi)], -1)      # (F, 3)
+    a = np.einsum("...tf,fi,fj->...tij", ww, basis, basis)
+    b = np.einsum("...tf,...tf,fi->...ti", ww, d, basis)
+    a = a + (1e-9 * np.trace(a, axis1=-2, axis2=-1)[..., None, None] + 1e-300) * np.eye(3)   # rings of < 3 cells
+    fit = np.einsum("...ti,fi->...tf", np.linalg.solve(a, b[..., None])[..., 0], basis)
+    num = np.sum(ww * (d - fit) ** 2, axis=(-2, -1))
+    den = np.sum(ww * d**2, axis=(-2, -1))
+    return np.where(den > TINY, np.sqrt(num / np.where(den > TINY, den, 1.0)), np.inf)
+
+
+def complete_isotropic(d0: np.ndarray, w0: np.ndarray, grid: DirectionGrid, target: np.ndarray, *,
+                       view: np.ndarray | None = None, min_ring_coverage: float = 1 / 3) -> Completion:
+    """Complete an isotropic partial NDF <d0, w0> (T, F) by azimuthal symmetry: no exemplar search.
+
+    Every ring whose cells the domain covers by at least ``min_ring_coverage``
+    gets its ring mean (:func:`ring_means`, weights W dw) at every azimuth;
+    the profile continues past the last such ring by :func:`extend_beyond_reach`
+    (log-linear in theta, non-increasing). On rings the domain only grazes
+    (a narrow arc at its edge, grazing light) the partial NDF of a rough
+    material falls far below the true one; their ring means would carry
+    that bias round the whole ring (card, 340-light rig: 0.59 -> 0.21,
+    docs/decisions.md). The confidence is the ring mean of W on the rings
+    used. With ``view`` the cosine |o . h| of the Fresnel factor
+    (:func:`facetsynth.partial_ndf.fresnel_cosine`) is averaged per ring the
+    same way (push-pull beyond).
+    """
+    w0 = np.clip(np.asarray(w0, float), 0.0, None)
+    r, touched = ring_means(d0, w0, grid)
+    covered = touched & (np.mean(w0 > SUPPORT, axis=-1) >= min_ring_coverage)
+    if not covered.any():
+        covered = touched
+    wr, _ = ring_means(w0, w0, grid)
+    w = np.broadcast_to(np.where(covered, wr, 0.0)[:, None], grid.shape).copy()
+    d = np.broadcast_to(r[:, None], grid.shape).copy()
+    full = np.broadcast_to(covered[:, None], grid.shape).astype(float)    # the ring means are kept as they are:
+    filled = push_pull(full * d, full)                                     # push-pull only fills the other rings
+    filled = np.where(np.isfinite(filled), np.maximum(filled, 0.0), 0.0)
+    filled = extend_beyond_reach(filled, full > 0, grid)
+    cosine = None
+    if view is not None:
+        c, _ = ring_means(fresnel_cosine(view, grid), w0, grid)
+        cosine = np.broadcast_to(c[:, None], grid.shape)
+        cosine = np.clip(np.nan_to_num(push_pull(full * cosine, full), nan=0.0), 0.0, 1.0)
+    om = grid.solid_angles
+    covered_area = float(np.sum(((w > SUPPORT) & target) * om)) / max(float(np.sum(target * om)), TINY)
+    return Completion(ndf=filled, confidence=w, coverage=covered_area, iterations=0, stalled=False,
+                      merges=[], fallbacks=0, fresnel_cosine=cosine)
+
+
 def complete(d0: np.ndarray, w0: np.ndarray, spectra: ExemplarSpectra, exemplars_d: np.ndarray,
              exemplars_w: np.ndarray, grid: DirectionGrid, target: np.ndarray, *, search: HistogramSearch | None = None,
              overlap_range: tuple[float, float] = (0.5, 0.85), max_iterations: int = 12,
              target_coverage: float = 0.99, max_relative_error: float = 0.4, candidates_per_region: int = 5,
              fill_overlap: float | None = None, refine: bool = True, extend_rings: bool = False,
-             phi_window: int | None = None, fallback_exact: bool = True, exclude: int | None = None) -> Completion:
+             phi_window: int | None = None, fallback_exact: bool = True, exclude: int | None = None,
+             view: np.ndarray | None = None, exemplars_view: np.ndarray | None = None) -> Completion:
     """Complete one partial NDF <d0, w0> (T, F) by iterative synthesis (sec. 5.2).
 
     Each iteration finds the exemplar and rotation minimising eq. 15 against
@@ -451,11 +549,18 @@ def complete(d0: np.ndarray, w0: np.ndarray, spectra: ExemplarSpectra, exemplars
     ``target_coverage`` of ``target`` is covered or after ``max_iterations``;
     holes are then filled by push-pull (weights W), and the rings beyond the
     reach of rotation (``target``) by :func:`extend_beyond_reach` (with
-    ``extend_rings``; else push-pull's constant extension). ``exclude``: an exemplar
+    ``extend_rings``; else :func:`hold_beyond_reach`, the last ring held). ``exclude``: an exemplar
     row not to use at all (tests: the query itself).
+
+    With ``view`` (the query's view o, (3,)) and ``exemplars_view`` (N, 3),
+    the cosine |o . h| of the Fresnel factor that eq. 11 leaves in each cell
+    is carried along: rotated with each merged exemplar and merged with the
+    weights of eq. 16 (``Completion.fresnel_cosine``), so that sec. 5.4 can
+    divide the right F out of every cell (docs/decisions.md).
     """
     lo, hi = overlap_range
     d, w = np.asarray(d0, float).copy(), np.clip(np.asarray(w0, float), 0.0, None).copy()
+    cosine = None if view is None else fresnel_cosine(view, grid)
     om = grid.solid_angles
     n_phi = grid.n_phi
     target_area = float(np.sum(target * om))
@@ -527,6 +632,9 @@ def complete(d0: np.ndarray, w0: np.ndarray, spectra: ExemplarSpectra, exemplars
                            "merged": False})
             break
         dc, wc = rotate_tuple(ed, ew, grid, s)
+        if cosine is not None:
+            cosine_c = grid.rotate(fresnel_cosine(exemplars_view[row], grid), s * grid.d_phi)
+            cosine = merge(cosine, w, cosine_c, wc, 1.0)[0]
         d, w = merge(d, w, dc, wc, float(m.s1 / m.s2))
         merges.append({"exemplar": row, "shift": s, "relative_error": float(m.relative), "overlap": f,
                        "merged": True, "fill": bound > hi})
@@ -541,7 +649,8 @@ def complete(d0: np.ndarray, w0: np.ndarray, spectra: ExemplarSpectra, exemplars
     covered = coverage()
     filled = push_pull(w * d, w)
     filled = np.where(np.isfinite(filled), np.maximum(filled, 0.0), 0.0)
-    if extend_rings:
-        filled = extend_beyond_reach(filled, target, grid)
+    filled = extend_beyond_reach(filled, target, grid) if extend_rings else hold_beyond_reach(filled, target)
+    if cosine is not None:
+        cosine = hold_beyond_reach(np.clip(np.nan_to_num(push_pull(w * cosine, w), nan=0.0), 0.0, 1.0), target)
     return Completion(ndf=filled, confidence=w, coverage=covered, iterations=iterations, stalled=stalled,
-                      merges=merges, fallbacks=fallbacks)
+                      merges=merges, fallbacks=fallbacks, fresnel_cosine=cosine)

@@ -13,12 +13,12 @@ with a capture manifest; the ground truth (scene, true radiance) goes beside it.
 from __future__ import annotations
 
 import logging
-import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 from tqdm import tqdm
 
 from . import manifest as manifest_io
@@ -87,16 +87,20 @@ class VirtualRig:
 
 
 def capture(scene_path: str | Path, rig: VirtualRig, out_dir: str | Path, seed: int = 0,
-            noise: bool = True) -> Path:
+            noise: bool = True, rotation_deg: float = 0.0) -> Path:
     """Render a virtual capture of the scene into ``out_dir`` (a capture folder).
 
     Writes ``frames/NNNN_eK.exr`` (one per exposure, half floats as a camera
     would deliver), ``truth/radiance_NNNN.exr`` (the true radiance I, half
     floats: relative precision 5e-4, ample for the accuracy records),
     ``truth/scene.yaml`` and ``manifest.json``. The folder is staged and moved
-    into place only when complete.
+    into place only when complete. ``rotation_deg``: the sample turned on the
+    rig by this angle (added to the scene's own ``rotation_deg``; the truth
+    scene records the total).
     """
-    scene = Scene.load(scene_path)
+    scene_dict = read_yaml(scene_path)
+    scene_dict["rotation_deg"] = float(scene_dict.get("rotation_deg", 0.0)) + float(rotation_deg)
+    scene = Scene.from_dict(scene_dict, scene_path)
     rng = np.random.default_rng(seed)
     camera = rig.camera(scene.size[0])
     intensities = rig.led_intensities(rng)
@@ -115,7 +119,7 @@ def capture(scene_path: str | Path, rig: VirtualRig, out_dir: str | Path, seed: 
     with atomic_dir(out_dir) as staging:
         (staging / "frames").mkdir()
         (staging / "truth").mkdir()
-        shutil.copyfile(scene_path, staging / "truth" / "scene.yaml")
+        (staging / "truth" / "scene.yaml").write_text(yaml.safe_dump(scene_dict, sort_keys=False))
         controller = VirtualController(n_leds=rig.desc["leds"]["count"], max_steps=rig.max_steps,
                                        steps_per_mm=rig.desc["carriage"]["steps_per_mm"])
         with virtual_port(controller) as port, RigController.open(port) as driver:

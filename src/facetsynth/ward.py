@@ -58,8 +58,13 @@ def fit_point(rho_s: np.ndarray, wi: np.ndarray, wo: np.ndarray, starts=((0.15, 
 
     Parameters are fitted as log ks, log alpha (positivity) and phi; several
     starts (alpha_x < alpha_y, phi = 0 and 45 deg cover the frame's quadrant),
-    the lowest cost wins. A point with no specular signal gets ks = 0.
+    the lowest cost wins. A point with no specular signal gets ks = 0. Samples
+    whose value or directions are NaN or Inf are dropped.
     """
+    rho_s, wi, wo = np.asarray(rho_s, float), np.asarray(wi, float), np.asarray(wo, float)
+    finite = np.isfinite(rho_s) & np.isfinite(wi).all(axis=-1) & np.isfinite(wo).all(axis=-1)
+    if not finite.all():
+        rho_s, wi, wo = rho_s[finite], wi[finite], wo[finite]
     if rho_s.size < 5 or not np.any(rho_s > 0):
         return WardFit(0.0, 0.3, 0.3, 0.0, 0.0, False)
     best = None

@@ -20,6 +20,7 @@ rule capture:
         rig=lambda wc: sample_rig(wc.sample),
         seed=config["seed"],
         noise=config["virtual"]["noise"],
+        rotation_deg=lambda wc: float(SAMPLE_SHEET[wc.sample].get("rotation_deg", 0.0)),
     log:
         "results/{sample}/logs/capture.log",
     benchmark:

@@ -4,9 +4,57 @@
 import csv
 from pathlib import Path
 
+import yaml
 from snakemake.exceptions import WorkflowError
 from snakemake.utils import validate
 
+
+def apply_preset(config):
+    """Fill every knob the chosen preset sets (config key 'preset', one of the names under 'presets')
+    that its section leaves out; a knob given in its section (config file, --configfile, --config)
+    overrides the preset. --config passes nested values as strings ('{resolution: 48}' -> '48'):
+    such strings are read as YAML when the preset's value is not a string. Returns the knobs set by
+    the preset as {"section.knob": value}."""
+    presets = config.get("presets") if isinstance(config.get("presets"), dict) else {}
+    name = config.get("preset", "balanced")
+    if not isinstance(name, str) or name not in presets:
+        raise WorkflowError(f"config: unknown preset {name!r} (config key 'preset'); "
+                            f"choose one of: {', '.join(map(str, presets)) or 'none defined under presets'}")
+    filled = {}
+    chosen = presets[name] if isinstance(presets[name], dict) else {}   # else validation names it
+    for section, knobs in chosen.items():
+        if not isinstance(knobs, dict):
+            continue
+        if config.get(section) is None:   # a section all of whose knobs come from the preset
+            config[section] = {}
+        target = config[section]
+        if not isinstance(target, dict):
+            continue   # validation below names the bad section
+        for knob, value in knobs.items():
+            if knob not in target:
+                target[knob] = value
+                filled[f"{section}.{knob}"] = value
+            elif not isinstance(value, str):
+                target[knob] = typed(target[knob])
+    return filled
+
+
+def typed(value):
+    """A --config value parsed by YAML's BaseLoader (strings at every leaf) read as YAML again, leaf by
+    leaf; a leaf that is not valid YAML is left as given (validation names it)."""
+    if isinstance(value, list):
+        return [typed(v) for v in value]
+    if isinstance(value, dict):
+        return {k: typed(v) for k, v in value.items()}
+    if isinstance(value, str):
+        try:
+            return yaml.safe_load(value)
+        except yaml.YAMLError:
+            return value
+    return value
+
+
+PRESET_KNOBS = apply_preset(config)
 validate(config, "../schemas/config.schema.yaml")
 
 
@@ -30,11 +78,25 @@ def read_samples(path):
         samples[row["sample"]] = row
     if not samples:
         raise WorkflowError(f"{path}: the sample sheet lists no samples")
+    for name, row in samples.items():
+        main = row.get("rotation_of")
+        if main is not None and (main not in samples or "rotation_of" in samples[main]):
+            raise WorkflowError(f"{path}: sample '{name}' is a rotation of '{main}', which is not a sample of its "
+                                "own in the sheet")
+        if "rotation_deg" in row and row["source"] != "virtual":
+            raise WorkflowError(f"{path}: sample '{name}': rotation_deg applies to virtual samples only (a real "
+                                "capture is turned on the rig)")
     return samples
 
 
 SAMPLE_SHEET = read_samples(config["samples"])
 SAMPLES = list(SAMPLE_SHEET)
+MODEL_SAMPLES = [s for s in SAMPLES if "rotation_of" not in SAMPLE_SHEET[s]]   # rotations only feed synthesis
+
+
+def rotations_of(sample):
+    """The samples of the sheet that are further rotations of ``sample`` (paper 002 sec. 4)."""
+    return [s for s in SAMPLES if SAMPLE_SHEET[s].get("rotation_of") == sample]
 
 
 wildcard_constraints:

@@ -14,6 +14,8 @@ rule params:
         neighbours="results/{sample}/cluster/neighbours.npy",
         weights="results/{sample}/cluster/weights.npy",
         ndf="results/{sample}/synthesize/ndf.npy",
+        fresnel_cosine="results/{sample}/synthesize/fresnel_cosine.npy",
+        synthesis_confidence="results/{sample}/synthesize/confidence.npy",
         grid="results/{sample}/synthesize/grid.json",
     output:
         svbrdf=directory("results/{sample}/svbrdf"),

@@ -35,9 +35,10 @@ rule resample:
         coverage="results/{sample}/resample/coverage.npy",
         colour="results/{sample}/resample/specular_colour.npy",
         grid="results/{sample}/resample/grid.json",
+        metrics="results/{sample}/resample/metrics.json",
     params:
-        n_theta=config["resample"]["n_theta"],
-        n_phi=config["resample"]["n_phi"],
+        grazing_deg=config["partial_ndf"]["grazing_deg"],
+        **config["resample"],
     log:
         "results/{sample}/logs/resample.log",
     benchmark:

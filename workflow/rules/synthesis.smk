@@ -29,9 +29,19 @@ rule cluster:
         "../scripts/cluster.py"
 
 
+def rotation_inputs(wildcards):
+    """The geometry, partial NDFs and confidences of the sample's further rotations (sec. 4)."""
+    rotations = rotations_of(wildcards.sample)
+    return {"rotation_geometry": [f"results/{r}/rectify/geometry.json" for r in rotations],
+            "rotation_ndf": [f"results/{r}/partial_ndf/ndf.npy" for r in rotations],
+            "rotation_confidence": [f"results/{r}/partial_ndf/confidence.npy" for r in rotations]}
+
+
 rule synthesize:
     input:
+        unpack(rotation_inputs),
         geometry="results/{sample}/rectify/geometry.json",
+        kd="results/{sample}/separate/kd.exr",
         ndf="results/{sample}/partial_ndf/ndf.npy",
         confidence="results/{sample}/partial_ndf/confidence.npy",
         grid="results/{sample}/resample/grid.json",
@@ -41,11 +51,13 @@ rule synthesize:
     output:
         ndf="results/{sample}/synthesize/ndf.npy",
         confidence="results/{sample}/synthesize/confidence.npy",
+        fresnel_cosine="results/{sample}/synthesize/fresnel_cosine.npy",
         grid="results/{sample}/synthesize/grid.json",
         metrics="results/{sample}/synthesize/metrics.json",
     params:
         seed=config["seed"],
         **config["synthesize"],
+        material_tolerance=config["params"]["material_tolerance"],
     log:
         "results/{sample}/logs/synthesize.log",
     benchmark:

@@ -4,8 +4,10 @@ from facetsynth.stages.runner import run_stage
 i, p = snakemake.input, snakemake.params
 run_stage(snakemake, params.run, geometry=i.geometry, kd_path=i.kd, specular=i.specular, valid=i.valid,
           colour=i.colour, representatives=i.representatives, neighbours=i.neighbours, weights=i.weights,
-          ndf=i.ndf, grid_path=i.grid, svbrdf_out=snakemake.output.svbrdf, metrics_out=snakemake.output.metrics,
-          grazing_deg=p.grazing_deg, reference=p.fresnel_reference, eta_min=p.eta_min, eta_max=p.eta_max,
+          ndf=i.ndf, fresnel_cosine=i.fresnel_cosine,
+          synthesis_confidence=i.synthesis_confidence, grid_path=i.grid, svbrdf_out=snakemake.output.svbrdf,
+          metrics_out=snakemake.output.metrics,
+          grazing_deg=p.grazing_deg, eta_min=p.eta_min, eta_max=p.eta_max,
           eta_default=p.eta_default, min_samples=p.min_samples, max_std=p.max_std,
           min_ndf_fraction=p.min_ndf_fraction, max_split_difference=p.max_split_difference,
-          log_residuals=p.log_residuals)
+          material_tolerance=p.material_tolerance)

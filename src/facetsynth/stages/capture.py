@@ -15,11 +15,14 @@ from ..virtual_rig import VirtualRig, capture as virtual_capture
 log = logging.getLogger(__name__)
 
 
-def run(source: str, path: str | Path, out_dir: str | Path, rig: str | Path, seed: int, noise: bool) -> None:
-    """Produce the capture folder ``out_dir`` (``manifest.json`` + frames) for one sample."""
+def run(source: str, path: str | Path, out_dir: str | Path, rig: str | Path, seed: int, noise: bool,
+        rotation_deg: float = 0.0) -> None:
+    """Produce the capture folder ``out_dir`` (``manifest.json`` + frames) for one sample (a virtual scene
+    turned by ``rotation_deg`` on the rig)."""
     if source == "virtual":
-        log.info("virtual capture of scene %s with rig %s (seed %d, noise %s)", path, rig, seed, noise)
-        virtual_capture(path, VirtualRig.load(rig), out_dir, seed=seed, noise=noise)
+        log.info("virtual capture of scene %s turned by %g deg with rig %s (seed %d, noise %s)", path, rotation_deg,
+                 rig, seed, noise)
+        virtual_capture(path, VirtualRig.load(rig), out_dir, seed=seed, noise=noise, rotation_deg=rotation_deg)
     elif source == "import":
         import_capture(path, out_dir)
     else:

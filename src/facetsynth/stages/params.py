@@ -17,12 +17,14 @@ import numpy as np
 from tqdm import tqdm
 
 from .. import params as fit
+from ..cluster import material_groups
 from ..errors import InputError
 from ..fileio import atomic_dir, read_exr, read_json, write_json
 from ..grid import DirectionGrid
 from ..microfacet import fresnel, half_vector
 from ..render import light_geometry
 from ..svbrdf import SVBRDF
+from ..synthesis import SUPPORT
 from .common import RectifiedCapture, tiles
 
 log = logging.getLogger(__name__)
@@ -85,20 +87,27 @@ def build_model(ndf: np.ndarray, grid: DirectionGrid, neighbours: np.ndarray, we
 
 
 def grazing_fresnel(model: SVBRDF, ks_pt: np.ndarray, capture: RectifiedCapture, specular, valid,
-                    grazing_deg: float, min_ndf_fraction: float, c_ref_pt: np.ndarray) -> dict[str, np.ndarray]:
+                    grazing_deg: float, min_ndf_fraction: float, cosine: np.ndarray,
+                    covered: np.ndarray) -> dict[str, np.ndarray]:
     """F_m of eq. 20 for every grazing sample (light steeper than ``grazing_deg``) of every visible point.
 
-    Returns flat arrays over samples: ``point``, ``f_m``, ``c`` = |i.h|,
-    ``c_ref`` = ``c_ref_pt`` of the sample's point (|o.n| of the representative
-    whose completed NDF it mostly uses: the cosine at h = n, where the NDF's
-    scale absorbed F),
-    ``rho_s``. Only samples whose half vector lies in the lobe (D(h) >=
+    ``model`` holds the NDFs as synthesis left them (carrying F, eq. 11) and
+    ``cosine`` (R, T, F) the cosine of the Fresnel factor each of their cells
+    carries. Returns flat arrays over samples: ``point``, ``f_m``, ``c`` =
+    |i.h|, ``c_ref`` = the cosine the model's NDF carries at the sample's h
+    (the eq. 18 mixture of ``cosine``, weighted by each representative's D
+    there), ``rho_s``. Only samples whose half vector lies in the lobe (D(h) >=
     ``min_ndf_fraction`` x the point's largest D) are kept: elsewhere the
-    specular signal, and so F_m, is noise.
+    specular signal, and so F_m, is noise; and only where the NDF was
+    measured or synthesized (``covered`` (R, T, F) bool, the synthesis domain
+    before push-pull, for at least half of the mixture's weight): push-pull's
+    extrapolation is no basis for eq. 20.
     """
     points = capture.points
     cos_g = np.cos(np.radians(grazing_deg))
-    peak = np.array([float(model.ndf[r].max()) for r in range(model.ndf.shape[0])])
+    peak = model.ndf.reshape(model.ndf.shape[0], -1).max(axis=1)
+    carried = (model.ndf * cosine).reshape(model.ndf.shape[0], -1).astype(float)
+    covered = np.asarray(covered, float).reshape(model.ndf.shape[0], -1)
     out = {k: [] for k in ("point", "f_m", "c", "c_ref", "rho_s")}
     for tile in tqdm(list(tiles(capture.n_points)), desc="params: grazing samples", unit="tile"):
         wi, _ = light_geometry(points[tile][:, None, :], capture.light_positions[None])   # (p, F, 3)
@@ -111,45 +120,45 @@ def grazing_fresnel(model: SVBRDF, ks_pt: np.ndarray, capture: RectifiedCapture,
         o = capture.view_position - points[index]
         o /= np.linalg.norm(o, axis=-1, keepdims=True)
         i = wi[pp, ff]
+        h = half_vector(i, o)
         spec, c = model.specular_terms(index, i, o)
         d_peak = np.sum(model.weights[index] * peak[model.neighbours[index]], axis=1)
-        d_here = model.ndf_at(index, half_vector(i, o))
-        lobe = d_here >= min_ndf_fraction * d_peak
+        d_here = model.ndf_at(index, h)
+        c_ref = np.clip(model.mixture(carried, model.grid, index, h) / np.maximum(d_here, 1e-300), 0.0, 1.0)
+        lobe = (d_here >= min_ndf_fraction * d_peak) & (model.mixture(covered, model.grid, index, h) >= 0.5)
         rho_s = np.asarray(specular[tile], float)[pp, ff].mean(axis=-1)
         f_m = fit.measured_fresnel(rho_s, ks_pt[index] * spec)
         keep = lobe & (spec > 0)
-        for k, v in (("point", index), ("f_m", f_m), ("c", c), ("c_ref", c_ref_pt[index]), ("rho_s", rho_s)):
+        for k, v in (("point", index), ("f_m", f_m), ("c", c), ("c_ref", c_ref), ("rho_s", rho_s)):
             out[k].append(v[keep])
     return {k: (np.concatenate(v) if v else np.zeros(0)) for k, v in out.items()}
 
 
-def fit_eta(model: SVBRDF, w18: np.ndarray, samples: dict[str, np.ndarray], reference: str | None,
-            bounds, default: float, min_samples: int, max_std: float, max_split_difference: float = 0.1,
-            log_residuals: bool = True) -> tuple:
-    """eta per representative by LM (eq. 19) on the grazing samples of the points it owns
-    (its largest eq. 18 weight), then per point by the eq. 18 weights.
+def fit_eta(model: SVBRDF, w18: np.ndarray, samples: dict[str, np.ndarray], material: np.ndarray, bounds,
+            default: float, min_samples: int, max_std: float, max_split_difference: float = 0.1) -> tuple:
+    """eta per material by LM (eq. 19) on the grazing samples of its points (a point belongs to the
+    material of its largest eq. 18 weight's representative); every representative of the material takes
+    it, and each point the eq. 18 mixture of its representatives' eta.
 
     The standard error of one fit assumes independent residuals, but the
     NDF's errors are shared by a point's samples; so the fit is repeated on
     the samples of the even and of the odd points, and eta counts as
     unconstrained (default kept) when the halves disagree by more than
     ``max_split_difference``. Returns (eta (P,), fitted (P,) bool,
-    per-representative records, eta per representative (R,)).
+    per-material records, eta per representative (R,)). ``samples["c_ref"]``
+    None: eq. 19 as printed (no Fresnel factor in the NDF, e.g. an analytic material).
     """
     n_rep = model.ndf.shape[0]
     owner = model.neighbours[np.arange(model.n_points), np.argmax(w18, axis=1)]
-    sample_owner = owner[samples["point"]] if samples["point"].size else np.zeros(0, np.intp)
-    order = np.argsort(sample_owner, kind="stable")
-    bounds_idx = np.searchsorted(sample_owner[order], np.arange(n_rep + 1))
+    sample_material = material[owner[samples["point"]]] if samples["point"].size else np.zeros(0, np.intp)
     eta_rep, ok_rep, records = np.full(n_rep, default), np.zeros(n_rep, bool), []
-    for r in range(n_rep):
-        sel = order[bounds_idx[r]:bounds_idx[r + 1]]
-        c_ref = None if reference is None else samples["c_ref"][sel]
-        kw = dict(bounds=bounds, default=default, min_samples=min_samples, max_std=max_std,
-                  log_residuals=log_residuals)
+    kw = dict(bounds=bounds, default=default, min_samples=min_samples, max_std=max_std)
+    for m in np.unique(material):
+        sel = np.flatnonzero(sample_material == m)
+        c_ref = None if samples["c_ref"] is None else samples["c_ref"][sel]
         res = fit.fit_eta(samples["f_m"][sel], samples["c"][sel], c_ref, **kw)
-        record = {"eta": res.eta, "constrained": res.constrained, "std": res.std, "samples": res.samples,
-                  "reason": res.reason}
+        record = {"material": int(m), "representatives": np.flatnonzero(material == m).tolist(), "eta": res.eta,
+                  "constrained": res.constrained, "std": res.std, "samples": res.samples, "reason": res.reason}
         if res.constrained:
             halves = []
             for parity in (0, 1):
@@ -162,7 +171,7 @@ def fit_eta(model: SVBRDF, w18: np.ndarray, samples: dict[str, np.ndarray], refe
                 res = fit.EtaFit(default, False, res.std, res.samples, res.rms,
                                  f"even/odd points disagree: eta {halves[0]:.3f} / {halves[1]:.3f}")
                 record.update(eta=default, constrained=False, fitted_eta=record["eta"], reason=res.reason)
-        eta_rep[r], ok_rep[r] = res.eta, res.constrained
+        eta_rep[material == m], ok_rep[material == m] = res.eta, res.constrained
         records.append(record)
     total = w18.sum(axis=1)
     eta = np.where(np.abs(total) > 1e-6, np.sum(w18 * eta_rep[model.neighbours], axis=1) / np.where(
@@ -174,11 +183,20 @@ def fit_eta(model: SVBRDF, w18: np.ndarray, samples: dict[str, np.ndarray], refe
 
 def run(geometry: str | Path, kd_path: str | Path, specular: str | Path, valid: str | Path, colour: str | Path,
         representatives: str | Path, neighbours: str | Path, weights: str | Path, ndf: str | Path,
-        grid_path: str | Path, svbrdf_out: str | Path, metrics_out: str | Path, grazing_deg: float = 80.0,
-        reference: str = "lobe", eta_min: float = fit.ETA_BOUNDS[0], eta_max: float = fit.ETA_BOUNDS[1],
-        eta_default: float = fit.ETA_DEFAULT, min_samples: int = 8, max_std: float = 0.15,
-        min_ndf_fraction: float = 0.05, max_split_difference: float = 0.1, log_residuals: bool = True) -> None:
-    """Fit the remaining parameters and write the SVBRDF folder ``svbrdf_out`` and the metrics."""
+        fresnel_cosine: str | Path, synthesis_confidence: str | Path, grid_path: str | Path,
+        svbrdf_out: str | Path, metrics_out: str | Path, grazing_deg: float = 80.0,
+        eta_min: float = fit.ETA_BOUNDS[0], eta_max: float = fit.ETA_BOUNDS[1], eta_default: float = fit.ETA_DEFAULT,
+        min_samples: int = 8,
+        max_std: float = 0.15, min_ndf_fraction: float = 0.05, max_split_difference: float = 0.1,
+        material_tolerance: float = 0.25) -> None:
+    """Fit the remaining parameters and write the SVBRDF folder ``svbrdf_out`` and the metrics.
+
+    Eq. 11 assumes F = 1, so the synthesized NDFs carry a Fresnel factor whose
+    cosine synthesis carried along per cell (``fresnel_cosine``); eq. 19
+    compares F_c(|i.h|) / F_c(that cosine) with F_m, and the NDFs are divided
+    by F(cosine, eta) once eta is known, so that the model's D and ks are free
+    of Fresnel and eq. 6 applies F(|i . h|, eta) at any view.
+    """
     capture = RectifiedCapture.load(geometry)
     n = capture.n_points
     grid = DirectionGrid.from_dict(read_json(grid_path))
@@ -186,43 +204,45 @@ def run(geometry: str | Path, kd_path: str | Path, specular: str | Path, valid: 
     table = np.asarray(_load(ndf, len(reps), "the completed NDF table"), float)
     if table.shape[1:] != grid.shape:
         raise InputError(ndf, f"NDF table {table.shape[1:]} does not match its grid {grid.shape}")
+    cosine = np.asarray(_load(fresnel_cosine, len(reps), "the Fresnel cosine table"), float)
+    if cosine.shape != table.shape:
+        raise InputError(fresnel_cosine, f"shape {cosine.shape} does not match the NDF table {table.shape}")
     nb = np.asarray(_load(neighbours, n, "neighbours"))
     w18 = np.asarray(_load(weights, n, "weights"), float)
     channels, _ = read_exr(kd_path)
     kd = channels["RGB"].reshape(n, 3).astype(float)
     col = np.asarray(_load(colour, n, "specular colour"), float)
     spec, ok = _load(specular, n, "specular samples"), _load(valid, n, "sample validity")
-    ref = None if reference in (None, "none") else reference
 
-    model, ks_pt, ks_rep = build_model(table, grid, nb, w18, kd, col, capture, reps)
+    carrying, ks_pt, ks_rep = build_model(table, grid, nb, w18, kd, col, capture, reps)
     log.info("%d representatives, ks median %.4g; %d points", len(reps), float(np.median(ks_rep)), n)
-    owner = nb[np.arange(n), np.argmax(w18, axis=1)]
-    c_ref_rep = capture.view_directions(True)[np.asarray(reps, np.intp), 2]
-    samples = grazing_fresnel(model, ks_pt, capture, spec, ok, grazing_deg, min_ndf_fraction, c_ref_rep[owner])
+    covered = np.asarray(_load(synthesis_confidence, len(reps), "the synthesis confidence"), float) > SUPPORT
+    samples = grazing_fresnel(carrying, ks_pt, capture, spec, ok, grazing_deg, min_ndf_fraction, cosine, covered)
     log.info("%d grazing samples (lights beyond %.0f deg) in the lobes", samples["f_m"].size, grazing_deg)
-    eta, fitted, records, eta_rep = fit_eta(model, w18, samples, ref, (eta_min, eta_max), eta_default,
-                                            min_samples, max_std, max_split_difference, log_residuals)
+    material = material_groups(kd[reps.astype(np.intp)], material_tolerance)
+    log.info("%d materials by kd (tolerance %.2f)", material.max() + 1, material_tolerance)
+    eta, fitted, records, eta_rep = fit_eta(carrying, w18, samples, material, (eta_min, eta_max), eta_default,
+                                            min_samples, max_std, max_split_difference)
+    # the NDFs without the Fresnel factor they carry: D = D_c / F(cosine, eta) (eqs. 3, 11)
+    free = table / np.maximum(fresnel(cosine, eta_rep[:, None, None]), 1e-6)
+    model, _, _ = build_model(free, grid, nb, w18, kd, col, capture, reps)
     model.eta, model.eta_fitted = eta, fitted & capture.visible
-    if ref == "lobe":
-        # each completed NDF carries F at |o.n| of its representative (module note of facetsynth.params):
-        # the physical ks_rep is ks_rep / F(c_ref, eta_rep); the per-point mixtures follow (eq. 18)
-        ks_phys, mix = mixture(ks_rep / np.maximum(fresnel(c_ref_rep, eta_rep), 1e-6), nb, w18)
-        model.weights = mix
-        model.ks = np.where(capture.visible, ks_phys, 0.0)[:, None] * col
-    model.info = {"eta": {"bounds": [eta_min, eta_max], "default": eta_default, "reference": ref or "none",
+    model.info = {"eta": {"bounds": [eta_min, eta_max], "default": eta_default, "materials": material.tolist(),
                           "fitted_fraction": float(model.eta_fitted[capture.visible].mean()),
                           "grazing_deg": grazing_deg},
-                  "ks": "ks = integral (n.h) D (sec. 5.4) x specular colour" + (" / F(|o.n|, eta)" if ref else "")}
+                  "ks": "ks = integral (n.h) D (sec. 5.4) x specular colour, D free of the Fresnel factor"}
     with atomic_dir(svbrdf_out) as staging:       # the folder appears whole or not at all
         model.save(staging, provenance={"ndf": str(ndf), "neighbours": str(neighbours), "geometry": str(geometry)})
 
     n_fit = int(sum(r["constrained"] for r in records))
+    ok_rep_count = sum(len(r["representatives"]) for r in records if r["constrained"])
     metrics = {"ground_truth": capture.truth_scene is not None, "points": n, "representatives": len(reps),
-               "grazing_samples": int(samples["f_m"].size), "representatives_eta_fitted": n_fit,
+               "grazing_samples": int(samples["f_m"].size), "materials": len(records),
+               "materials_eta_fitted": n_fit, "representatives_eta_fitted": int(ok_rep_count),
                "points_eta_fitted_fraction": model.info["eta"]["fitted_fraction"],
-               "eta_default": eta_default, "eta_bounds": [eta_min, eta_max], "fresnel_reference": ref or "none",
+               "eta_default": eta_default, "eta_bounds": [eta_min, eta_max],
                "eta_median": float(np.median(eta[capture.visible])) if capture.visible.any() else None,
-               "per_representative": records[:200]}
+               "per_material": records[:200]}
     truth = capture.truth()
     if truth is not None:
         on = capture.visible & (truth.region >= 0)

@@ -14,15 +14,16 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from .. import synthesis as syn
-from ..fileio import read_json, write_json, write_npy
+from ..cluster import material_groups
+from ..errors import InputError
+from ..fileio import read_exr, read_json, write_json, write_npy
 from ..grid import DirectionGrid
-from ..microfacet import fresnel
-from ..synthesis import TINY
 from .common import RectifiedCapture, tiles
 
 log = logging.getLogger(__name__)
@@ -32,13 +33,35 @@ METRIC_POINTS = 1024   # points scored against the true NDF (every k-th visible 
 
 def run(geometry: str | Path, ndf: str | Path, confidence: str | Path, grid_path: str | Path,
         representatives: str | Path, neighbours: str | Path, weights: str | Path,
-        ndf_out: str | Path, confidence_out: str | Path, grid_out: str | Path, metrics_out: str | Path,
+        ndf_out: str | Path, confidence_out: str | Path, cosine_out: str | Path, grid_out: str | Path,
+        metrics_out: str | Path,
         search: str = "exact", compare: bool = False, n_regions: int = 20, buckets: int = 32,
         candidates: int = 5, overlap: tuple[float, float] = (0.5, 0.85), max_iterations: int = 12,
         target_coverage: float = 0.96, max_relative_error: float = 0.4, stalled_fraction: float = 0.5,
         max_exemplars: int = 4096, ann_neighbors: int = 30, ann_epsilon: float = 0.2, fill_overlap: float | None = None,
-        extend_rings: bool = False, fresnel_eta: float | None = None, seed: int = 0) -> None:
-    """Complete every representative's NDF; write ndf (R, T, F), its W before fill, grid, metrics."""
+        extend_rings: bool = False, isotropic_threshold: float = 0.13, kd: str | Path | None = None,
+        material_tolerance: float = 0.25, seed: int = 0,
+        rotations: Sequence[tuple[str | Path, str | Path, str | Path]] = ()) -> None:
+    """Complete every representative's NDF; write ndf (R, T, F), its W before fill, the cosine of the
+    Fresnel factor each cell carries (R, T, F; see :func:`facetsynth.synthesis.complete`), grid, metrics.
+
+    Isotropy is a property of the material: representatives are grouped into
+    materials by kd (``kd``, :func:`facetsynth.cluster.material_groups`, as in
+    ``params``), and a material whose representatives' partial NDFs deviate
+    from azimuthal symmetry by less than ``isotropic_threshold`` in the median
+    (relative L2, :func:`facetsynth.synthesis.anisotropy`; one
+    representative alone is noisy when its lobe is narrower than a ring) is
+    isotropic: its representatives are completed by azimuthal symmetry
+    (:func:`facetsynth.synthesis.complete_isotropic`), without a search. When
+    every representative is isotropic no exemplar set or index is built at
+    all (``search_skipped``). ``isotropic_threshold`` 0 turns this off.
+
+    ``rotations``: (geometry, ndf, confidence) of further captures of the same
+    sample turned on the rig (paper 002 sec. 4, last paragraph): their partial
+    NDFs join the exemplar set (``max_exemplars`` shared evenly), so that a
+    material whose frame is the same everywhere (brushed metal) finds rotated
+    exemplars. Their rotation angles need not be known: eq. 14 searches every
+    rotation anyway."""
     if search not in ("ann", "exact"):
         raise ValueError(f"synthesize.search must be 'ann' or 'exact', not {search!r}")
     capture = RectifiedCapture.load(geometry)
@@ -47,19 +70,46 @@ def run(geometry: str | Path, ndf: str | Path, confidence: str | Path, grid_path
     d_all = np.load(ndf, mmap_mode="r")
     w_all = np.load(confidence, mmap_mode="r")
     reps = np.load(representatives)
-    visible = np.flatnonzero(capture.visible)
-    pool = visible[:: max(1, int(np.ceil(visible.size / max_exemplars)))]
     t0 = time.perf_counter()
     view = capture.view_directions(True)
-    ex_d = np.asarray(d_all[pool], np.float32) * _fresnel_factor(view[pool], grid, fresnel_eta)
-    ex_w = np.asarray(w_all[pool], np.float32)
-    spectra = syn.ExemplarSpectra(ex_d, ex_w, grid, pool)
+    budget = max(2, max_exemplars // (1 + len(rotations)))
+    pool = exemplar_pool(capture, budget)
+    sources = [(d_all, w_all, view, pool)]
+    for rot_geometry, rot_ndf, rot_confidence in rotations:
+        rot_capture = RectifiedCapture.load(rot_geometry)
+        rot_d, rot_w = np.load(rot_ndf, mmap_mode="r"), np.load(rot_confidence, mmap_mode="r")
+        if rot_d.shape[1:] != grid.shape:
+            raise InputError(rot_ndf, f"partial NDFs on a {rot_d.shape[1:]} grid; the sample's grid is {grid.shape} "
+                                      "(captures of one sample must share the direction grid: fix n_theta_range)")
+        sources.append((rot_d, rot_w, rot_capture.view_directions(True), exemplar_pool(rot_capture, budget)))
+    ex_index = np.concatenate([pool] + [np.full(src[3].size, -1) for src in sources[1:]])   # -1: another capture
+    ex_view = np.concatenate([src[2][src[3]] for src in sources])
+    rep_d, rep_w = np.asarray(d_all[reps], float), np.asarray(w_all[reps], float)
+    stat = syn.anisotropy(rep_d, rep_w, grid)
+    if kd is None:
+        material = np.arange(len(reps))
+    else:
+        channels, _ = read_exr(kd)
+        material = material_groups(channels["RGB"].reshape(-1, 3)[np.asarray(reps, np.intp)], material_tolerance)
+    material_stat = {int(m): float(np.median(stat[material == m])) for m in np.unique(material)}
+    isotropic = np.array([material_stat[int(m)] < isotropic_threshold for m in material], bool)
+    skip = bool(isotropic.all())
+    log.info("isotropy: %d of %d representatives isotropic, %d of %d materials (median relative L2 deviation "
+             "from ring means and first azimuthal harmonic per material below %.3f: %s; per representative min %.3f, "
+             "median %.3f, max %.3f)%s", isotropic.sum(), len(reps),
+             sum(v < isotropic_threshold for v in material_stat.values()), len(material_stat), isotropic_threshold,
+             {m: round(v, 3) for m, v in material_stat.items()}, stat.min(initial=np.inf), np.median(stat) if stat.size
+             else np.nan, stat.max(initial=-np.inf),
+             ": all complete by azimuthal symmetry, no exemplar search" if skip else "")
+    ex_w = np.concatenate([np.asarray(src[1][src[3]], np.float32) for src in sources])
+    ex_d = None if skip else np.concatenate([np.asarray(src[0][src[3]], np.float32) for src in sources])
+    spectra = None if skip else syn.ExemplarSpectra(ex_d, ex_w, grid, ex_index)
     mask = np.median(ex_w > syn.SUPPORT, axis=0) > 0.5           # the view's domain Omega (Fig. 7)
     target = syn.hemisphere_target(mask, grid)
     shifts = syn.region_shifts(mask, grid, n_regions, *overlap)
     prep_seconds = time.perf_counter() - t0
     log.info("%d exemplars x %d rotations; domain %.1f %% of the hemisphere, rotations reach %.1f %%; "
-             "%d overlap regions, shifts %s sectors", pool.size, grid.n_phi,
+             "%d overlap regions, shifts %s sectors", ex_index.size, grid.n_phi,
              100 * np.sum(mask * grid.solid_angles) / (2 * np.pi),
              100 * np.sum(target * grid.solid_angles) / (2 * np.pi), shifts.size,
              np.unique(np.round(shifts)).astype(int).tolist())
@@ -70,7 +120,7 @@ def run(geometry: str | Path, ndf: str | Path, confidence: str | Path, grid_path
         t1, c1 = time.perf_counter(), time.process_time()
         index = None
         build = 0.0
-        if mode == "ann":
+        if mode == "ann" and not skip:
             if shifts.size == 0:
                 log.warning("no rotation gives a %.0f-%.0f %% overlap: ANN search disabled, exact search used",
                             100 * overlap[0], 100 * overlap[1])
@@ -79,13 +129,16 @@ def run(geometry: str | Path, ndf: str | Path, confidence: str | Path, grid_path
                                             n_neighbors=ann_neighbors, epsilon=ann_epsilon)
                 build = index.build_seconds
         out = []
-        for r in reps:
-            d_rep = np.asarray(d_all[r], float) * _fresnel_factor(view[[r]], grid, fresnel_eta)[0]
-            out.append(syn.complete(d_rep, np.asarray(w_all[r], float), spectra, ex_d, ex_w,
+        for i, r in enumerate(reps):
+            if isotropic[i]:
+                out.append(syn.complete_isotropic(rep_d[i], rep_w[i], grid, target, view=view[r]))
+                continue
+            out.append(syn.complete(np.asarray(d_all[r], float), np.asarray(w_all[r], float), spectra, ex_d, ex_w,
                                     grid, target, search=index, overlap_range=tuple(overlap),
                                     max_iterations=max_iterations, target_coverage=target_coverage,
                                     max_relative_error=max_relative_error, candidates_per_region=candidates,
-                                    fill_overlap=fill_overlap, extend_rings=extend_rings))
+                                    fill_overlap=fill_overlap, extend_rings=extend_rings,
+                                    view=view[r], exemplars_view=ex_view))
         results[mode] = (out, time.perf_counter() - t1, build, time.process_time() - c1)
         log.info("%s search: %d representatives in %.1f s (index build %.1f s)", mode, len(reps),
                  results[mode][1], build)
@@ -94,19 +147,28 @@ def run(geometry: str | Path, ndf: str | Path, confidence: str | Path, grid_path
     table = np.stack([c.ndf for c in completions]).astype(np.float32)
     write_npy(ndf_out, table)
     write_npy(confidence_out, np.stack([c.confidence for c in completions]).astype(np.float32))
+    write_npy(cosine_out, np.stack([c.fresnel_cosine for c in completions]).astype(np.float32))
     write_json(grid_out, grid_dict)
 
-    metrics = {"representatives": int(len(reps)), "exemplars": int(pool.size), "search": search,
+    metrics = {"representatives": int(len(reps)), "exemplars": 0 if skip else int(ex_index.size),
+               "rotation_captures": len(rotations), "search": search,
                "regions": int(shifts.size), "region_shifts_sectors": np.unique(np.round(shifts)).astype(int).tolist(),
                "overlap_range": list(overlap), "max_relative_error": max_relative_error,
                "domain_fraction_of_hemisphere": float(np.sum(mask * grid.solid_angles) / (2 * np.pi)),
                "reachable_fraction_of_hemisphere": float(np.sum(target * grid.solid_angles) / (2 * np.pi)),
                "reachable_max_theta_deg": float(np.degrees((np.flatnonzero(target[:, 0]).max() + 1) * grid.d_theta))
                if target.any() else 0.0,
-               "prepare_seconds": round(prep_seconds, 2)}
+               "prepare_seconds": round(prep_seconds, 2),
+               "isotropic_threshold": isotropic_threshold,
+               "isotropic_representatives": int(isotropic.sum()), "search_skipped": skip,
+               "anisotropy": [round(float(x), 4) for x in stat],
+               "anisotropy_median": float(np.median(stat)) if stat.size else None,
+               "materials": len(material_stat),
+               "material_anisotropy": [round(v, 4) for v in material_stat.values()]}
     truth = capture.truth()
     scored = np.zeros(capture.n_points, bool)
     if truth is not None:
+        visible = np.flatnonzero(capture.visible)
         scored[visible[:: max(1, visible.size // METRIC_POINTS)]] = True
         scored &= truth.region >= 0
     nbr, wts = np.load(neighbours, mmap_mode="r"), np.load(weights, mmap_mode="r")
@@ -128,21 +190,17 @@ def run(geometry: str | Path, ndf: str | Path, confidence: str | Path, grid_path
         log.warning("INSUFFICIENT ROTATION DIVERSITY: %d of %d representatives could not be completed from "
                     "rotated exemplars (no exemplar matched within relative error %.2f); their NDFs are only "
                     "push-pull extensions of the partial data (coverage before fill %.2f). Capture the sample "
-                    "at further rotations (paper 002 sec. 4).", metrics["stalled_representatives"], len(reps),
-                    max_relative_error, metrics["coverage_before_fill"])
+                    "at further rotations (e.g. turned by 30 and 60 deg) and list each capture in the sample sheet "
+                    "with rotation_of = this sample: they join its exemplars (paper 002 sec. 4).",
+                    metrics["stalled_representatives"], len(reps), max_relative_error, metrics["coverage_before_fill"])
     log.info("synthesize metrics: %s", {k: v for k, v in metrics.items() if not isinstance(v, list)})
     write_json(metrics_out, metrics)
 
 
-def _fresnel_factor(view: np.ndarray, grid: DirectionGrid, eta: float | None) -> np.ndarray:
-    """F(|o.n|, eta) / F(|o.h|, eta) per cell (N, T, F) float32: moves the partial NDF's Fresnel factor
-    (eq. 11 assumes F = 1) to its value at h = n. Ones when eta is None."""
-    if eta is None:
-        return np.ones((len(view),) + grid.shape, np.float32)
-    h = grid.directions.reshape(1, -1, 3)
-    c = np.abs(np.sum(h * view[:, None, :], axis=-1))
-    f = fresnel(np.abs(view[:, 2:3]), eta) / np.maximum(fresnel(c, eta), TINY)
-    return f.reshape((len(view),) + grid.shape).astype(np.float32)
+def exemplar_pool(capture: RectifiedCapture, budget: int) -> np.ndarray:
+    """Exemplar points of one capture: its visible points, strided down to at most ``budget``."""
+    visible = np.flatnonzero(capture.visible)
+    return visible[:: max(1, int(np.ceil(visible.size / budget)))]
 
 
 def _summary(comps, seconds, build, stalled_fraction) -> dict:

@@ -1,0 +1,189 @@
+"""Speed against accuracy: collect the presets' measured time, memory and accuracy (``make bench``).
+
+Pure functions over a results tree (``results/{scene}/benchmarks/{stage}.tsv``, the Snakemake
+``benchmark:`` files, and the stages' ``metrics.json``), the Pareto front, and the plot.
+``workflow/scripts/bench.py`` runs the presets and calls these.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+
+#: The fitting stages, capture to params: ``wall_s`` is the sum of their benchmark seconds. Capture
+#: and hdr do not depend on the preset; ``preset_s`` sums the stages that do (rectify to params).
+FIT_STAGES = ("capture", "hdr", "rectify", "separate", "resample", "partial_ndf", "cluster", "synthesize", "params")
+PRESET_STAGES = FIT_STAGES[2:]
+
+COLUMNS = (["preset", "scene", "wall_s", "preset_s", "cpu_s", "peak_mem_mb"] + [f"{s}_s" for s in FIT_STAGES]
+           + ["heldout_psnr_db", "heldout_ssim", "baseline_ward_psnr_db", "ndf_rel_l2_median",
+              "partial_ndf_rel_l2_median", "resolution", "n_theta", "n_phi", "representatives", "exemplars"])
+
+
+def _number(text: str | None) -> float | None:
+    try:
+        value = float(text)
+    except (TypeError, ValueError):
+        return None
+    return value if math.isfinite(value) else None
+
+
+def read_benchmark(path: str | Path) -> dict[str, float | None]:
+    """Seconds, peak resident memory (MB) and CPU seconds of one Snakemake benchmark file
+    ({'s', 'max_rss', 'cpu_time'}); the means of the seconds and the largest max_rss over its rows
+    (``benchmark: repeat(...)``)."""
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f, delimiter="\t"))
+    if not rows:
+        raise ValueError(f"{path}: benchmark file has no rows")
+    seconds = [v for v in (_number(r.get("s")) for r in rows) if v is not None]
+    rss = [v for v in (_number(r.get("max_rss")) for r in rows) if v is not None]
+    cpu = [v for v in (_number(r.get("cpu_time")) for r in rows) if v is not None]
+    return {"s": sum(seconds) / len(seconds) if seconds else None, "max_rss": max(rss) if rss else None,
+            "cpu_time": sum(cpu) / len(cpu) if cpu else None}
+
+
+def _json(path: Path) -> dict:
+    return json.loads(path.read_text()) if path.is_file() else {}
+
+
+def collect_row(results: str | Path, preset: str, scene: str) -> dict:
+    """One row of tradeoff.csv from ``results/{scene}/`` of one preset's run: per-stage seconds,
+    ``wall_s`` (sum over FIT_STAGES; None when one is missing), ``preset_s`` (rectify to params),
+    ``cpu_s`` (sum of their cpu_time: less sensitive to other load on the machine than wall time),
+    ``peak_mem_mb`` (max of max_rss over FIT_STAGES), and the accuracy records."""
+    root = Path(results) / scene
+    row: dict = {"preset": preset, "scene": scene}
+    seconds, peaks, cpu = [], [], []
+    for stage in FIT_STAGES:
+        path = root / "benchmarks" / f"{stage}.tsv"
+        bench = read_benchmark(path) if path.is_file() else {"s": None, "max_rss": None, "cpu_time": None}
+        row[f"{stage}_s"] = bench["s"]
+        seconds.append(bench["s"])
+        cpu.append(bench["cpu_time"])
+        if bench["max_rss"] is not None:
+            peaks.append(bench["max_rss"])
+    row["wall_s"] = None if None in seconds else sum(seconds)
+    preset_seconds = seconds[len(FIT_STAGES) - len(PRESET_STAGES):]
+    row["preset_s"] = None if None in preset_seconds else sum(preset_seconds)
+    row["cpu_s"] = None if None in cpu else sum(cpu)
+    row["peak_mem_mb"] = max(peaks) if peaks else None
+    validate = _json(root / "validate/metrics.json")
+    for key in ("heldout_psnr_db", "heldout_ssim", "baseline_ward_psnr_db"):
+        row[key] = validate.get(key)
+    synthesize = _json(root / "synthesize/metrics.json")
+    row["ndf_rel_l2_median"] = synthesize.get("ndf_rel_l2_median")
+    row["representatives"] = synthesize.get("representatives")
+    row["exemplars"] = synthesize.get("exemplars")
+    row["partial_ndf_rel_l2_median"] = _json(root / "partial_ndf/metrics.json").get("ndf_rel_l2_median")
+    geometry = _json(root / "rectify/geometry.json")
+    row["resolution"] = (geometry.get("grid") or {}).get("cols")
+    grid = _json(root / "resample/grid.json")
+    row["n_theta"], row["n_phi"] = grid.get("n_theta"), grid.get("n_phi")
+    return {column: row.get(column) for column in COLUMNS}
+
+
+def write_csv(rows: Iterable[dict], path: str | Path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=COLUMNS, extrasaction="ignore")
+        writer.writeheader()
+        for row in rows:
+            writer.writerow({k: _cell(row.get(k)) for k in COLUMNS})
+    return path
+
+
+def _cell(value):
+    if value is None:
+        return ""
+    return round(value, 4) if isinstance(value, float) else value
+
+
+def read_csv(path: str | Path) -> list[dict]:
+    """tradeoff.csv back as rows (numbers as floats, empty cells as None)."""
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    out = []
+    for row in rows:
+        out.append({k: (v if k in ("preset", "scene") else _number(v)) for k, v in row.items()})
+    return out
+
+
+def pareto_front(points: Sequence[tuple[float | None, float | None]]) -> list[int]:
+    """Indices of the points (time, accuracy) that no other point beats: none is at most as slow and
+    at least as accurate while strictly better in one of the two. Lower time and higher accuracy are
+    better; points with a missing or non-finite coordinate are left out. Sorted by time."""
+    valid = [i for i, (t, a) in enumerate(points)
+             if t is not None and a is not None and math.isfinite(t) and math.isfinite(a)]
+    front = []
+    for i in valid:
+        ti, ai = points[i]
+        dominated = any(points[j][0] <= ti and points[j][1] >= ai and (points[j][0] < ti or points[j][1] > ai)
+                        for j in valid if j != i)
+        if not dominated:
+            front.append(i)
+    return sorted(front, key=lambda i: (points[i][0], -points[i][1]))
+
+
+def machine_description() -> str:
+    """'N cores, M GB RAM' of this machine (the cores this process may use; MemTotal)."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:   # not Linux
+        cores = os.cpu_count() or 0
+    ram = None
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemTotal:"):
+                ram = int(line.split()[1]) / 1024 ** 2
+                break
+    except OSError:
+        pass
+    return f"{cores} cores" + (f", {ram:.0f} GB RAM" if ram is not None else "")
+
+
+def plot(rows: Sequence[dict], path: str | Path, title: str, presets: Sequence[str] = ("fast", "balanced", "accurate"),
+         x: str = "wall_s", y: str = "heldout_psnr_db") -> Path:
+    """Time against accuracy: one thin line per scene (its presets in time order), one marker shape per
+    preset, and each scene's Pareto front (dashed; scores of different scenes are not comparable, so
+    each scene has its own). Needs matplotlib (the ``bench`` extra)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    markers = dict(zip(presets, "os^DvP*"))
+    fig, ax = plt.subplots(figsize=(7.5, 5))
+    scenes = list(dict.fromkeys(r["scene"] for r in rows))
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for k, scene in enumerate(scenes):
+        mine = sorted((r for r in rows if r["scene"] == scene and r.get(x) is not None and r.get(y) is not None),
+                      key=lambda r: r[x])
+        colour = colours[k % len(colours)]
+        ax.plot([r[x] for r in mine], [r[y] for r in mine], "-", color=colour, alpha=0.35, lw=1, label=scene)
+        for r in mine:
+            ax.plot(r[x], r[y], markers.get(r["preset"], "x"), color=colour, markersize=8)
+        points = [(r[x], r[y]) for r in mine]
+        front = pareto_front(points)
+        ax.plot([points[i][0] for i in front], [points[i][1] for i in front], "--", color=colour, lw=2,
+                label=f"{scene}: Pareto front")
+    for preset, marker in markers.items():
+        if any(r["preset"] == preset for r in rows):
+            ax.plot([], [], marker, color="grey", label=preset)
+    ax.set_xlabel({"wall_s": "fit time, capture to params (s, sum of the Snakemake benchmarks)",
+                   "cpu_s": "fit CPU time, capture to params (s, sum of the benchmarks' cpu_time)",
+                   "preset_s": "fit time, rectify to params (s)"}.get(x, x))
+    ax.set_ylabel("held-out PSNR (dB)" if y == "heldout_psnr_db" else y)
+    ax.set_title(title, fontsize=10)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path

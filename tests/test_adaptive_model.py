@@ -1,0 +1,143 @@
+"""Issue 7 part 3, a model only as complex as the scene requires (docs/decisions.md, "Adaptive model size").
+
+(A) isotropic representatives are completed by azimuthal symmetry, without a search;
+(B) the number of representatives follows the diversity of the partial NDFs.
+"""
+
+import json
+
+import numpy as np
+import pytest
+
+from facetsynth import cluster, microfacet
+from facetsynth import synthesis as syn
+from facetsynth.grid import DirectionGrid
+from facetsynth.partial_ndf import fresnel_cosine
+from test_synthesis import rel_l2, single_view_domain
+from test_workflow import make_workdir, metrics, snakemake
+
+GRID = DirectionGrid(16, 64)
+THRESHOLD = 0.13     # config.yaml synthesize.isotropic_threshold
+
+
+def ggx(alpha, frame=0.0, grid=GRID):
+    h = grid.directions.reshape(1, -1, 3)
+    return microfacet.ndf(h, alpha[0], alpha[1], np.array([[frame]])).reshape(grid.shape)
+
+
+def on_domain(d, grid=GRID):
+    mask = single_view_domain(grid)
+    return np.where(mask, d, 0.0), mask.astype(float)
+
+
+# ---------------------------------------------------------------------------- (A) isotropy
+def test_isotropy_statistic_on_analytic_ggx():
+    d, w = on_domain(ggx((0.2, 0.2)))
+    assert syn.anisotropy(d, w, GRID) < 1e-6 < THRESHOLD
+    for frame in (0.0, 0.4, 1.1, 2.0):
+        d, w = on_domain(ggx((0.1, 0.3), frame))
+        assert syn.anisotropy(d, w, GRID) > 2 * THRESHOLD
+    assert np.isinf(syn.anisotropy(np.zeros(GRID.shape), w, GRID))       # no data: never isotropic
+
+
+def test_isotropic_completion_recovers_the_ndf_and_carries_the_fresnel_cosine():
+    truth = ggx((0.2, 0.2))
+    d, w = on_domain(truth)
+    target = syn.hemisphere_target(w > 0, GRID)
+    view = np.array([np.sin(0.6), 0.0, np.cos(0.6)])
+    c = syn.complete_isotropic(d, w, GRID, target, view=view)
+    assert c.iterations == 0 and not c.merges and 0.5 < c.coverage <= 1.0
+    used = np.mean(w > 0, axis=1) >= 1 / 3                                   # rings the domain covers by a third
+    np.testing.assert_allclose(c.ndf[used], truth[used], rtol=1e-9)         # at every azimuth
+    assert np.all(np.ptp(c.ndf, axis=1) < 1e-9 * c.ndf.max())                # a ring profile everywhere
+    assert np.all(np.diff(c.ndf[:, 0])[~used[1:]] <= 0)                      # extended, non-increasing
+    assert rel_l2(c.ndf, truth) < 0.25                                       # (log-linear beyond: not exact)
+    assert np.all(np.ptp(c.fresnel_cosine, axis=1) < 1e-9)
+    cos = fresnel_cosine(view, GRID)
+    ring = np.flatnonzero(used)[3]
+    inside = w[ring] > 0
+    assert c.fresnel_cosine[ring, 0] == pytest.approx(np.mean(cos[ring, inside]))   # equal W and dw on a ring
+
+
+# ---------------------------------------------------------------------------- (B) number of representatives
+def test_k_follows_the_number_of_distinct_ndf_shapes():
+    """Three GGX shapes at a fixed frame, 200 points each with 5 % multiplicative noise: k = 3 on the ladder
+    2, 3, 4, 6, ..., 64; two shapes: k = 2; one frame turned through 360 deg (eq. 15 is not rotation invariant):
+    many representatives."""
+    rng = np.random.default_rng(1)
+    shapes = [ggx((0.1, 0.1)), ggx((0.1, 0.4), 0.3), ggx((0.35, 0.6), 1.2)]
+
+    def feats(tables):
+        d, w = np.array([on_domain(t)[0] for t in tables]), np.array([on_domain(t)[1] for t in tables])
+        d = d * (1 + 0.05 * rng.standard_normal(d.shape))
+        return cluster.features(d, w, GRID)
+
+    three = feats([shapes[i % 3] for i in range(600)])
+    assert cluster.choose_k(three, 2, 64, 0.08, subsample=600).k == 3
+    two = feats([shapes[i % 2] for i in range(400)])
+    assert cluster.choose_k(two, 2, 64, 0.08, subsample=400).k == 2
+    turned = feats([ggx((0.1, 0.4), f) for f in np.linspace(0, 2 * np.pi, 400, endpoint=False)])
+    choice = cluster.choose_k(turned, 2, 64, 0.08, subsample=400)
+    assert choice.k >= 8 and choice.distortion[-1] <= 0.08 and choice.distortion == sorted(choice.distortion,
+                                                                                             reverse=True)
+
+
+# ---------------------------------------------------------------------------- the card scene end to end
+@pytest.fixture(scope="module")
+def card_run(repo, tmp_path_factory):
+    """card (four isotropic quadrants) on the 340-light rig, noise-free, on the fixed 32 x 128 direction grid
+    (the grid the thresholds were measured on), up to synthesize with the defaults (auto representatives,
+    isotropic completion)."""
+    workdir = make_workdir(repo, tmp_path_factory.mktemp("card"),
+                           "card\tvirtual\tresources/scenes/card.yaml\trig/descriptions/sparse.yaml\n")
+    (workdir / "rig/descriptions/sparse.yaml").write_text((repo / "tests/data/rig-sparse.yaml").read_text())
+    (workdir / "noise-free.yaml").write_text("virtual:\n  noise: false\nresample:\n  n_theta_range: [32, 32]\n")
+    done = snakemake(workdir, "results/card/synthesize/metrics.json", "--configfile", "config/config.yaml",
+                     "noise-free.yaml")
+    assert done.returncode == 0, done.stderr[-3000:]
+    return workdir
+
+
+def test_card_isotropic_representatives_skip_the_search_and_lose_nothing(card_run, tmp_path):
+    """The decision is recorded and followed; completing by symmetry is no worse than the exact search on the
+    same representatives. (The glossy quadrant, alpha 0.05, is not reliably isotropic by the statistic on
+    this grid (0.07-0.21, docs/decisions.md), so not every card representative skips the search.)"""
+    from facetsynth.stages import synthesize
+
+    m = metrics(card_run, "card", "synthesize")
+    assert m["isotropic_threshold"] == THRESHOLD and len(m["anisotropy"]) == m["representatives"]
+    print("card materials", m["materials"], "median anisotropy per material", m["material_anisotropy"],
+          "isotropic representatives", m["isotropic_representatives"], "of", m["representatives"])
+    assert m["materials"] >= 4 and len(m["material_anisotropy"]) == m["materials"]
+    if m["search_skipped"]:
+        assert m["exemplars"] == 0 and m["merges"] == 0
+    assert "isotropy:" in (card_run / "results/card/logs/synthesize.log").read_text()
+    res = card_run / "results/card"
+
+    def synthesize_again(threshold):
+        out = tmp_path / f"metrics-{threshold}.json"
+        synthesize.run(res / "rectify/geometry.json", res / "partial_ndf/ndf.npy", res / "partial_ndf/confidence.npy",
+                       res / "resample/grid.json", res / "cluster/representatives.npy", res / "cluster/neighbours.npy",
+                       res / "cluster/weights.npy", tmp_path / "ndf.npy", tmp_path / "confidence.npy",
+                       tmp_path / "cosine.npy", tmp_path / "grid.json", out, isotropic_threshold=threshold)
+        return json.loads(out.read_text())
+
+    s = synthesize_again(0.0)
+    assert s["search_skipped"] is False and s["isotropic_representatives"] == 0
+    # measured (2026-11-23, 23 representatives, 10 isotropic): symmetry 0.261, exact search 0.373
+    assert m["ndf_rel_l2_median"] <= s["ndf_rel_l2_median"] + 0.01
+    # every representative by symmetry (the glossy quadrant too): no exemplar set, no index, no search at all
+    f = synthesize_again(10.0)
+    assert f["search_skipped"] is True and f["exemplars"] == 0 and f["merges"] == 0
+    assert f["isotropic_representatives"] == f["representatives"]
+    assert f["ndf_rel_l2_median"] <= s["ndf_rel_l2_median"] + 0.01     # measured 0.261
+    assert np.load(tmp_path / "cosine.npy").shape == np.load(tmp_path / "ndf.npy").shape
+
+
+def test_card_needs_fewer_representatives_than_demo(card_run):
+    """Four isotropic materials: fewer representatives than demo (41 at 1 %, 45 chosen by the same rule)."""
+    m = metrics(card_run, "card", "cluster")
+    assert m["representatives_rule"] == "auto" and m["k_chosen"] == m["representatives_requested"]
+    assert m["k_chosen"] < 41
+    assert m["k_distortion_curve"][-1] <= m["k_distortion_tolerance"] or m["k_chosen"] == m["k_ladder"][-1]
+    assert "representatives: auto" in (card_run / "results/card/logs/cluster.log").read_text()

@@ -1,0 +1,141 @@
+"""Speed against accuracy: the presets reach the rules, and the benchmark's collection (fast tests only)."""
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from facetsynth import bench
+
+SNAKEMAKE = [sys.executable, "-m", "snakemake", "--cores", "1", "-n"]
+PROBE = """include: "Snakefile"
+import json
+print("PROBE " + json.dumps({
+    "rectify": rules.rectify.params.resolution,
+    "resample": [rules.resample.params.cells_per_lobe, rules.resample.params.n_theta_range],
+    "synthesize": [rules.synthesize.params.max_exemplars, rules.synthesize.params.max_iterations],
+}))
+"""
+
+
+@pytest.fixture(scope="module")
+def workdir(repo, tmp_path_factory):
+    """The workflow with a probe Snakefile that includes the real one and prints the preset knobs as
+    the rules' params hold them."""
+    dest = tmp_path_factory.mktemp("presets")
+    for part in ("Snakefile", "workflow", "config", "resources", "rig"):
+        src = repo / part
+        (shutil.copytree if src.is_dir() else shutil.copy)(src, dest / part)
+    (dest / "probe.smk").write_text(PROBE)
+    return dest
+
+
+def dry_run(workdir: Path, *config: str, snakefile: str = "probe.smk") -> subprocess.CompletedProcess:
+    args = SNAKEMAKE + ["-s", snakefile, "all"] + (["--config", *config] if config else [])
+    return subprocess.run(args, cwd=workdir, capture_output=True, text=True)
+
+
+def probed(done: subprocess.CompletedProcess) -> dict:
+    assert done.returncode == 0, done.stderr[-3000:]
+    lines = [line for line in done.stdout.splitlines() if line.startswith("PROBE ")]
+    assert len(lines) == 1, done.stdout[-2000:]
+    return json.loads(lines[0][len("PROBE "):])
+
+
+def preset_values(repo, name):
+    import yaml
+    p = yaml.safe_load((repo / "config/config.yaml").read_text())["presets"][name]
+    return {"rectify": p["rectify"]["resolution"],
+            "resample": [p["resample"]["cells_per_lobe"], p["resample"]["n_theta_range"]],
+            "synthesize": [p["synthesize"]["max_exemplars"], p["synthesize"]["max_iterations"]]}
+
+
+def test_balanced_is_the_default_and_keeps_the_recorded_defaults(repo, workdir):
+    values = probed(dry_run(workdir))
+    assert values == preset_values(repo, "balanced")
+    assert values == {"rectify": 64, "resample": [1.3, [16, 32]],
+                      "synthesize": [4096, 12]}
+
+
+@pytest.mark.parametrize("preset", ["fast", "accurate"])
+def test_a_preset_resolves_and_reaches_the_rules(repo, workdir, preset):
+    done = dry_run(workdir, f"preset={preset}")    # the probe includes the Snakefile: a dry run of its 'all'
+    assert probed(done) == preset_values(repo, preset)
+    assert "rule synthesize:" in done.stdout and "This was a dry-run" in done.stdout
+
+
+def test_a_single_knob_overrides_the_preset(repo, workdir):
+    """--config passes nested values as strings; a preset knob's string is read as YAML."""
+    values = probed(dry_run(workdir, "preset=fast", "rectify={resolution: 48}"))
+    assert values == {**preset_values(repo, "fast"), "rectify": 48}
+    (workdir / "override.yaml").write_text("preset: accurate\nsynthesize:\n  max_exemplars: 2048\n")
+    done = subprocess.run(SNAKEMAKE + ["-s", "probe.smk", "all", "--configfile", "config/config.yaml", "override.yaml"],
+                          cwd=workdir, capture_output=True, text=True)
+    expected = preset_values(repo, "accurate")
+    assert probed(done) == {**expected, "synthesize": [2048, expected["synthesize"][1]]}
+
+
+def test_an_unknown_preset_fails_naming_it(workdir):
+    done = dry_run(workdir, "preset=fastest", snakefile="Snakefile")
+    assert done.returncode != 0
+    message = done.stdout + done.stderr
+    assert "unknown preset 'fastest'" in message and "choose one of: fast, balanced, accurate" in message
+
+
+def test_pareto_front():
+    points = [(10, 30.0), (20, 32.0), (15, 29.0), (40, 31.0), (5, 25.0), (20, 32.0), (60, 33.0), (None, 40.0),
+              (70, float("nan"))]
+    # (15, 29) loses to (10, 30); (40, 31) to (20, 32); the two (20, 32) tie and both stay
+    assert bench.pareto_front(points) == [4, 0, 1, 5, 6]
+    assert bench.pareto_front([]) == []
+    assert bench.pareto_front([(3.0, 1.0)]) == [0]
+
+
+def _benchmark(path: Path, rows):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    header = "s\th:m:s\tmax_rss\tmax_vms\tmax_uss\tmax_pss\tio_in\tio_out\tmean_load\tcpu_time\n"
+    path.write_text(header + "".join(f"{s}\t0:00:00\t{rss}\t1\t1\t1\t0\t0\t50\t{s}\n" for s, rss in rows))
+
+
+def test_rows_from_a_results_tree(tmp_path):
+    results = tmp_path / "results"
+    root = results / "demo"
+    for k, stage in enumerate(bench.FIT_STAGES):
+        _benchmark(root / f"benchmarks/{stage}.tsv", [(k + 1.0, 100.0 * (k + 1))])
+    _benchmark(root / "benchmarks/baseline_ward.tsv", [(500.0, 9999.0)])     # not a fit stage
+    _benchmark(root / "benchmarks/synthesize.tsv", [(7.0, 700.0), (9.0, "NA")])   # repeat(): mean s, max rss
+    (root / "validate").mkdir()
+    (root / "validate/metrics.json").write_text(json.dumps({"heldout_psnr_db": 33.5, "heldout_ssim": 0.9,
+                                                            "baseline_ward_psnr_db": 30.1}))
+    (root / "synthesize").mkdir()
+    (root / "synthesize/metrics.json").write_text(json.dumps({"ndf_rel_l2_median": 0.21, "representatives": 41,
+                                                              "exemplars": 4096}))
+    (root / "rectify").mkdir()
+    (root / "rectify/geometry.json").write_text(json.dumps({"grid": {"cols": 64, "rows": 64}}))
+    row = bench.collect_row(results, "balanced", "demo")
+    seconds = {stage: k + 1.0 for k, stage in enumerate(bench.FIT_STAGES)} | {"synthesize": 8.0}
+    assert row["preset"] == "balanced" and row["scene"] == "demo"
+    assert row["wall_s"] == pytest.approx(sum(seconds.values()))
+    assert row["preset_s"] == pytest.approx(sum(v for k, v in seconds.items() if k not in ("capture", "hdr")))
+    assert row["synthesize_s"] == 8.0 and row["capture_s"] == 1.0
+    assert row["cpu_s"] == pytest.approx(row["wall_s"])     # the fake files' cpu_time equals s
+    assert row["peak_mem_mb"] == 900.0          # params (the 9th stage); baseline_ward left out
+    assert (row["heldout_psnr_db"], row["ndf_rel_l2_median"], row["resolution"]) == (33.5, 0.21, 64)
+    assert row["partial_ndf_rel_l2_median"] is None and row["n_phi"] is None     # absent records stay empty
+
+    (root / "benchmarks/params.tsv").unlink()   # an unfinished run: no total
+    partial = bench.collect_row(results, "balanced", "demo")
+    assert partial["wall_s"] is None and partial["params_s"] is None
+
+    path = bench.write_csv([row, partial], tmp_path / "bench/tradeoff.csv")
+    back = bench.read_csv(path)
+    assert list(back[0]) == bench.COLUMNS
+    assert back[0]["wall_s"] == pytest.approx(row["wall_s"]) and back[1]["wall_s"] is None
+    assert back[0]["preset"] == "balanced" and back[0]["heldout_psnr_db"] == 33.5
+
+
+def test_machine_description():
+    assert "cores" in bench.machine_description()
