@@ -52,7 +52,8 @@ def run(geometry: str | Path, ndf: str | Path, confidence: str | Path, grid_path
     (relative L2, :func:`facetsynth.synthesis.anisotropy`; one
     representative alone is noisy when its lobe is narrower than a ring) is
     isotropic: its representatives are completed by azimuthal symmetry
-    (:func:`facetsynth.synthesis.complete_isotropic`), without a search. When
+    (:func:`facetsynth.synthesis.complete_isotropic`), without a search
+    (without ``kd`` each representative decides alone). When
     every representative is isotropic no exemplar set or index is built at
     all (``search_skipped``). ``isotropic_threshold`` 0 turns this off.
 
