@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from facetsynth.errors import InputError
-from facetsynth.fileio import atomic_dir, read_exr, read_rgb, write_exr, write_json
+from facetsynth.fileio import atomic_dir, read_exr, read_npy, read_rgb, write_exr, write_json, write_npy
 
 
 def test_exr_round_trip_keeps_channels_and_header(tmp_path):
@@ -25,6 +25,16 @@ def test_truncated_exr_is_an_error_naming_the_file(tmp_path):
     (tmp_path / "cut.exr").write_bytes(data[: len(data) // 2])
     with pytest.raises(InputError, match=r"cut\.exr: not a readable OpenEXR image"):
         read_rgb(tmp_path / "cut.exr")
+
+
+def test_npy_tensors_round_trip_and_bad_ones_name_the_file(tmp_path):
+    write_npy(tmp_path / "a.npy", np.arange(6.0).reshape(2, 3))
+    np.testing.assert_array_equal(read_npy(tmp_path / "a.npy", mmap_mode="r"), np.arange(6.0).reshape(2, 3))
+    with pytest.raises(InputError, match=r"missing\.npy: file not found"):
+        read_npy(tmp_path / "missing.npy")
+    (tmp_path / "junk.npy").write_bytes(b"not numpy")
+    with pytest.raises(InputError, match=r"junk\.npy: not a readable \.npy tensor"):
+        read_npy(tmp_path / "junk.npy")
 
 
 def test_nan_pixels_are_an_error_naming_file_and_pixel(tmp_path):

@@ -177,6 +177,17 @@ def read_yaml(path: PathLike) -> Any:
         raise InputError(path, f"not valid YAML ({exc})") from None
 
 
+def read_npy(path: PathLike, mmap_mode: str | None = None) -> np.ndarray:
+    """Read a .npy tensor (memory-mapped with ``mmap_mode``); InputError names the file on failure."""
+    path = Path(path)
+    try:
+        return np.load(path, mmap_mode=mmap_mode)
+    except FileNotFoundError:
+        raise InputError(path, "file not found") from None
+    except Exception as exc:
+        raise InputError(path, f"not a readable .npy tensor ({exc})") from None
+
+
 def write_npy(path: PathLike, array: np.ndarray) -> None:
     """Write a .npy tensor atomically; later stages can memory-map it."""
     with atomic_path(path, suffix=".npy") as tmp:

@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from .errors import InputError
-from .fileio import read_exr, read_json, write_exr, write_json, write_npy
+from .fileio import read_exr, read_json, read_npy, write_exr, write_json, write_npy
 from .grid import DirectionGrid
 from .microfacet import fresnel, half_vector
 from .partial_ndf import SHADOWING_GRID
@@ -130,13 +130,7 @@ class SVBRDF:
             return a.reshape((p,) + a.shape[2:]).astype(np.float64)
 
         def tensor(name):
-            file = path / name
-            if not file.is_file():
-                raise InputError(file, "file not found")
-            try:
-                return np.load(file)
-            except Exception as exc:
-                raise InputError(file, f"not a readable .npy tensor ({exc})") from None
+            return read_npy(path / name)
 
         eta_channels, _ = read_exr(path / "eta.exr")
         fitted = eta_channels.get("eta_fitted")

@@ -19,7 +19,7 @@ from tqdm import tqdm
 from .. import params as fit
 from ..cluster import material_groups
 from ..errors import InputError
-from ..fileio import atomic_dir, read_exr, read_json, write_json
+from ..fileio import atomic_dir, read_exr, read_json, read_npy, write_json
 from ..grid import DirectionGrid
 from ..microfacet import fresnel, half_vector
 from ..render import light_geometry
@@ -31,13 +31,8 @@ log = logging.getLogger(__name__)
 
 
 def _load(path, shape0=None, what=""):
-    path = Path(path)
-    try:
-        a = np.load(path, mmap_mode="r")
-    except FileNotFoundError:
-        raise InputError(path, "file not found") from None
-    except Exception as exc:
-        raise InputError(path, f"not a readable .npy tensor ({exc})") from None
+    """A memory-mapped .npy tensor whose first axis has ``shape0`` rows (InputError naming ``what`` if not)."""
+    a = read_npy(path, mmap_mode="r")
     if shape0 is not None and a.shape[0] != shape0:
         raise InputError(path, f"{what} has {a.shape[0]} rows, expected {shape0}")
     return a
