@@ -50,28 +50,43 @@ def merge_exposures(values: np.ndarray, times: np.ndarray, sensor: SensorModel) 
     exposure of some channel clipped (or was NaN / Inf); there the radiance is
     the lower bound clip level / t_min. Never NaN.
     """
-    values = np.asarray(values, dtype=np.float64)
-    times = np.asarray(times, dtype=np.float64).reshape((-1,) + (1,) * (values.ndim - 1))
-    unclipped = values < sensor.clip_level
-    usable = unclipped & (values > sensor.noise_floor)
-
+    values = np.asarray(values, dtype=np.float32)
+    times = np.asarray(times, dtype=np.float64).ravel()
+    clip, floor = sensor.clip_level, sensor.noise_floor
+    # One pass per exposure (a bracket has a handful), shortest first, so that the last unclipped
+    # exposure seen is the longest. float32 throughout: the merge is a weighted mean of at most E
+    # estimates v / t (relative rounding ~1e-7), far below any sensor's noise.
+    shape = values.shape[1:]
+    unclipped_any = np.zeros(shape, bool)
+    longest_value = np.zeros(shape, np.float32)
+    longest_time = np.ones(shape, np.float32)
+    usable = np.empty(values.shape, bool)
+    for e in np.argsort(times, kind="stable"):
+        v = values[e]
+        unclipped = v < clip                # NaN and +Inf readings are never usable
+        usable[e] = unclipped & (v > floor)
+        unclipped_any |= unclipped
+        np.copyto(longest_value, v, where=unclipped)
+        np.copyto(longest_time, np.float32(times[e]), where=unclipped)
+    all_clipped = ~unclipped_any
     # The longest unclipped exposure of each pixel decides whether it is dark.
-    all_clipped = ~unclipped.any(axis=0)
-    longest = np.argmax(np.where(unclipped, times, -np.inf), axis=0)
-    longest_value = np.take_along_axis(values, longest[None], axis=0)[0]
-    longest_time = times.ravel()[longest]
-    dark = ~all_clipped & (longest_value <= sensor.noise_floor)
-    usable &= ~dark
+    usable &= all_clipped | (longest_value > floor)
 
-    first_pass = np.divide(np.where(usable, values, 0.0).sum(axis=0), np.where(usable, times, 0.0).sum(axis=0),
-                           out=np.zeros(values.shape[1:]), where=usable.any(axis=0))
-    variance = sensor.read_sigma**2 + sensor.shot_gain * times * first_pass + 1e-30
-    weight = np.where(usable, times**2 / variance, 0.0)
-    weight_sum = weight.sum(axis=0)
-    merged = np.divide((weight * np.where(usable, values, 0.0) / times).sum(axis=0), weight_sum,
-                       out=np.zeros(values.shape[1:]), where=weight_sum > 0)
+    used = np.where(usable, values, np.float32(0.0))          # (E, ...), 0 where unusable
+    time_sum = np.tensordot(times.astype(np.float32), usable, axes=1)
+    first_pass = np.divide(used.sum(axis=0), time_sum, out=np.zeros(shape, np.float32), where=time_sum > 0)
+    weight_sum, weighted = np.zeros(shape, np.float32), np.zeros(shape, np.float32)
+    # Inverse-variance weights (t / t_max)^2 / var(v); the variance floor keeps a noise-free sensor's
+    # weights finite in float32 (any weights merge exact values exactly).
+    for e, t in enumerate(times):
+        variance = np.maximum(np.float32(sensor.read_sigma**2) + np.float32(sensor.shot_gain * t) * first_pass,
+                              np.float32(1e-20))
+        weight = np.where(usable[e], np.float32((t / times.max()) ** 2) / variance, np.float32(0.0))
+        weight_sum += weight
+        weighted += weight * used[e] * np.float32(1.0 / t)
+    merged = np.divide(weighted, weight_sum, out=np.zeros(shape, np.float32), where=weight_sum > 0)
 
-    lower_bound = sensor.clip_level / times.min() if sensor.saturation is not None else 0.0
-    fallback = np.where(all_clipped, lower_bound, np.clip(longest_value / longest_time, 0.0, None))
+    lower_bound = clip / times.min() if sensor.saturation is not None else 0.0
+    fallback = np.where(all_clipped, np.float32(lower_bound), np.clip(longest_value / longest_time, 0.0, None))
     radiance = np.where(weight_sum > 0, merged, fallback)
     return radiance.astype(np.float32), all_clipped.any(axis=-1)

@@ -51,5 +51,5 @@ def expose(radiance_image: np.ndarray, time: float, saturation: float | None = N
     value = time * radiance_image
     if rng is not None and (read_sigma > 0 or shot_gain > 0):
         sigma = np.sqrt(read_sigma**2 + shot_gain * np.clip(value, 0, None))
-        value = value + sigma * rng.standard_normal(value.shape)
+        value = value + sigma * rng.standard_normal(value.shape, dtype=np.result_type(value.dtype, np.float32))
     return np.clip(value, 0.0, saturation)

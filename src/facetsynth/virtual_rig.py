@@ -19,11 +19,11 @@ from typing import Any
 
 import numpy as np
 import yaml
-from tqdm import tqdm
 
 from . import manifest as manifest_io
 from .camera import Camera
 from .fileio import atomic_dir, read_yaml, write_exr
+from .frames import map_frames
 from .render import expose, radiance
 from .rig.driver import RigController
 from .rig.emulator import VirtualController, virtual_port
@@ -87,7 +87,7 @@ class VirtualRig:
 
 
 def capture(scene_path: str | Path, rig: VirtualRig, out_dir: str | Path, seed: int = 0,
-            noise: bool = True, rotation_deg: float = 0.0) -> Path:
+            noise: bool = True, rotation_deg: float = 0.0, threads: int = 1) -> Path:
     """Render a virtual capture of the scene into ``out_dir`` (a capture folder).
 
     Writes ``frames/NNNN_eK.exr`` (one per exposure, half floats as a camera
@@ -96,7 +96,9 @@ def capture(scene_path: str | Path, rig: VirtualRig, out_dir: str | Path, seed: 
     ``truth/scene.yaml`` and ``manifest.json``. The folder is staged and moved
     into place only when complete. ``rotation_deg``: the sample turned on the
     rig by this angle (added to the scene's own ``rotation_deg``; the truth
-    scene records the total).
+    scene records the total). Frames are rendered and written on ``threads``
+    threads while the scan goes on; each frame's sensor noise has its own
+    random stream (seed, frame), so a capture is the same on any number of threads.
     """
     scene_dict = read_yaml(scene_path)
     scene_dict["rotation_deg"] = float(scene_dict.get("rotation_deg", 0.0)) + float(rotation_deg)
@@ -114,7 +116,6 @@ def capture(scene_path: str | Path, rig: VirtualRig, out_dir: str | Path, seed: 
     points = np.concatenate([xy[on_sample], np.zeros((on_sample.sum(), 1))], axis=-1)
     maps = scene.parameters(xy[on_sample])
 
-    frames = []
     out_dir = Path(out_dir)
     with atomic_dir(out_dir) as staging:
         (staging / "frames").mkdir()
@@ -122,29 +123,38 @@ def capture(scene_path: str | Path, rig: VirtualRig, out_dir: str | Path, seed: 
         (staging / "truth" / "scene.yaml").write_text(yaml.safe_dump(scene_dict, sort_keys=False))
         controller = VirtualController(n_leds=rig.desc["leds"]["count"], max_steps=rig.max_steps,
                                        steps_per_mm=rig.desc["carriage"]["steps_per_mm"])
+
+        def expose_frame(job: tuple[int, np.ndarray, int, int]) -> dict:
+            """Render frame q lit from ``light``, expose its bracket, write its files; its manifest entry."""
+            q, light, led, steps = job
+            rng_frame = np.random.default_rng([seed, q])   # one stream per frame: the same noise on any thread
+            true_radiance = _render_frame(points, maps, on_sample, camera, light, intensities[led], supersample)
+            exposures = []
+            for e, t in enumerate(exposure["times"]):
+                value = expose(true_radiance, t, exposure["saturation"], read_sigma, shot_gain, rng_frame)
+                name = f"frames/{q:04d}_e{e}.exr"
+                write_exr(staging / name, {"RGB": value}, {"exposure_time": float(t)}, half=True)
+                exposures.append({"file": name, "time": float(t)})
+            truth_name = f"truth/radiance_{q:04d}.exr"
+            write_exr(staging / truth_name, {"RGB": true_radiance}, half=True)
+            return {"light": {"position": light.tolist(), "intensity": intensities[led].tolist()},
+                    "exposures": exposures, "truth": {"radiance": truth_name}, "led": led, "carriage_steps": steps}
+
         with virtual_port(controller) as port, RigController.open(port) as driver:
             info = driver.identify()
             log.info("virtual rig: %s on %s", info, port)
             driver.home()
-            for q, (steps, led) in enumerate(tqdm(rig.scan(), desc="capture", unit="frame")):
-                if driver.position() != steps:
-                    driver.move_to(steps)
-                driver.led_on(led)
-                state = controller.state()  # the virtual camera sees the hardware, not the loop
-                light = rig.led_position(state.lit_led, state.position)
-                true_radiance = _render_frame(points, maps, on_sample, camera, light,
-                                              intensities[state.lit_led], supersample)
-                exposures = []
-                for e, t in enumerate(exposure["times"]):
-                    value = expose(true_radiance, t, exposure["saturation"], read_sigma, shot_gain, rng)
-                    name = f"frames/{q:04d}_e{e}.exr"
-                    write_exr(staging / name, {"RGB": value}, {"exposure_time": float(t)}, half=True)
-                    exposures.append({"file": name, "time": float(t)})
-                truth_name = f"truth/radiance_{q:04d}.exr"
-                write_exr(staging / truth_name, {"RGB": true_radiance}, half=True)
-                frames.append({"light": {"position": light.tolist(), "intensity": intensities[state.lit_led].tolist()},
-                               "exposures": exposures, "truth": {"radiance": truth_name},
-                               "led": int(state.lit_led), "carriage_steps": int(state.position)})
+
+            def scan():
+                """Drive the rig through the scan; the virtual camera sees the hardware, not the loop."""
+                for q, (steps, led) in enumerate(rig.scan()):
+                    if driver.position() != steps:
+                        driver.move_to(steps)
+                    driver.led_on(led)
+                    state = controller.state()
+                    yield q, rig.led_position(state.lit_led, state.position), int(state.lit_led), int(state.position)
+
+            frames = map_frames(expose_frame, scan(), threads, "capture", total=len(rig.scan()))
             driver.leds_off()
         manifest_io.save(staging / "manifest.json", {
             "version": 1, "units": "m",

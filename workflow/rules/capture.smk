@@ -25,7 +25,7 @@ rule capture:
         "results/{sample}/logs/capture.log",
     benchmark:
         "results/{sample}/benchmarks/capture.tsv"
-    threads: 1
+    threads: 2   # frames in parallel (facetsynth.frames)
     resources:
         mem_mb=2000,
     script:

@@ -15,7 +15,7 @@ rule hdr:
         "results/{sample}/logs/hdr.log",
     benchmark:
         "results/{sample}/benchmarks/hdr.tsv"
-    threads: 1
+    threads: 2   # frames in parallel (facetsynth.frames)
     resources:
         mem_mb=2000,
     script:

@@ -16,7 +16,7 @@ rule rectify:
         "results/{sample}/logs/rectify.log",
     benchmark:
         "results/{sample}/benchmarks/rectify.tsv"
-    threads: 1
+    threads: 2   # frames in parallel (facetsynth.frames)
     resources:
         mem_mb=2000,
     script:

@@ -16,13 +16,14 @@ log = logging.getLogger(__name__)
 
 
 def run(source: str, path: str | Path, out_dir: str | Path, rig: str | Path, seed: int, noise: bool,
-        rotation_deg: float = 0.0) -> None:
+        rotation_deg: float = 0.0, threads: int = 1) -> None:
     """Produce the capture folder ``out_dir`` (``manifest.json`` + frames) for one sample (a virtual scene
-    turned by ``rotation_deg`` on the rig)."""
+    turned by ``rotation_deg`` on the rig, its frames rendered on ``threads`` threads)."""
     if source == "virtual":
         log.info("virtual capture of scene %s turned by %g deg with rig %s (seed %d, noise %s)", path, rotation_deg,
                  rig, seed, noise)
-        virtual_capture(path, VirtualRig.load(rig), out_dir, seed=seed, noise=noise, rotation_deg=rotation_deg)
+        virtual_capture(path, VirtualRig.load(rig), out_dir, seed=seed, noise=noise, rotation_deg=rotation_deg,
+                        threads=threads)
     elif source == "import":
         import_capture(path, out_dir)
     else:

@@ -55,7 +55,8 @@ def run(geometry: str | Path, slice_path: str | Path, coverage_path: str | Path,
             pick = scored[tile]
             if pick.any():
                 _score_variants(errors, variants, s[pick], c[pick], truth.take(np.flatnonzero(scored[tile]) + tile.start),
-                                capture, np.flatnonzero(pick) + tile.start, grid, grazing_deg, tol, max_iter)
+                                capture, np.flatnonzero(pick) + tile.start, grid, grazing_deg, tol, max_iter,
+                                own=((per_point_view, constrained), fit.ndf[pick], fit.confidence[pick]))
         ndf.flush()
         weight.flush()
         del ndf, weight
@@ -78,10 +79,17 @@ def run(geometry: str | Path, slice_path: str | Path, coverage_path: str | Path,
     write_json(metrics_out, metrics)
 
 
-def _score_variants(errors, variants, s, c, maps, capture, index, grid, grazing_deg, tol, max_iter) -> None:
+def _score_variants(errors, variants, s, c, maps, capture, index, grid, grazing_deg, tol, max_iter, own) -> None:
+    """Each variant's error on the scored points; ``own`` = ((per_point, constrained), D, W) of the stage's
+    own fit, which the variants that match it reuse instead of fitting again."""
     true_ndf = maps.take((slice(None), None)).ndf(grid.directions.reshape(1, -1, 3)).reshape(s.shape)
+    own_variant, own_ndf, own_confidence = own
     for name, (per_point, constrain) in variants.items():
         view = capture.view_directions(per_point)[index]
-        fit = pndf.fit(s, c, view, grid, constrain, grazing_deg, tol, max_iter)
+        if (per_point, constrain) == own_variant:
+            ndf, confidence = own_ndf, own_confidence
+        else:
+            fit = pndf.fit(s, c, view, grid, constrain, grazing_deg, tol, max_iter)
+            ndf, confidence = fit.ndf, fit.confidence
         reference = pndf.recoverable_ndf(maps.ks, maps.eta, true_ndf, view, grid)
-        errors[name].append(pndf.relative_l2(fit.ndf, reference, fit.confidence >= 0.5, grid))
+        errors[name].append(pndf.relative_l2(ndf, reference, confidence >= 0.5, grid))

@@ -7,10 +7,10 @@ import os
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from .. import manifest as manifest_io
 from ..fileio import atomic_dir, file_key, read_frame, read_rgb, write_exr, write_json
+from ..frames import map_frames
 from ..metrics import marker_centroids, relative_errors
 from ..plane import PlaneGrid
 from ..rectify import visible_cells, warp_to_plane
@@ -21,13 +21,14 @@ log = logging.getLogger(__name__)
 
 
 def run(hdr_manifest: str | Path, frames_dir: str | Path, geometry_out: str | Path, metrics_out: str | Path,
-        resolution: int, filtername: str = "triangle") -> None:
+        resolution: int, filtername: str = "triangle", threads: int = 1) -> None:
     """Warp every HDR frame onto a ``resolution``-cell-wide grid over the sample.
 
     Writes ``frames_dir/NNNN.exr`` (R, G, B, ``saturated``), and
     ``geometry_out`` (JSON): the grid and its (row, col) -> (x, y) mapping, the
     camera position (the view point V), the lights, the frame files and the
-    ``visible`` cells. Cells are square; rows follow from the sample's aspect.
+    ``visible`` cells. Cells are square; rows follow from the sample's aspect. Frames are warped on
+    ``threads`` threads.
     """
     capture = manifest_io.load(hdr_manifest)
     camera = manifest_io.camera(capture)
@@ -35,16 +36,19 @@ def run(hdr_manifest: str | Path, frames_dir: str | Path, geometry_out: str | Pa
     grid = PlaneGrid(width, height, cols=resolution, rows=max(1, int(round(resolution * height / width))))
     visible = visible_cells(camera, grid)
     frames_dir, geometry_out = Path(frames_dir), Path(geometry_out)
-    frames = []
     key = {"hdr": file_key(hdr_manifest), "grid": grid.to_dict(), "filter": filtername}
     with atomic_dir(frames_dir, key) as staging:
-        for q, frame in enumerate(tqdm(capture["frames"], desc="rectify", unit="frame")):
+
+        def rectify_frame(job: tuple[int, dict]) -> dict:
+            q, frame = job
             out = staging / f"{q:04d}.exr"
             if not out.exists():  # else rectified before an interruption
                 rgb, saturated = read_frame(frame["exposures"][0]["file"])
                 warped = warp_to_plane(np.dstack([rgb, saturated]), camera, grid, filtername)
                 write_exr(out, {"RGB": warped[..., :3], "saturated": (warped[..., 3] > 0).astype(np.float32)})
-            frames.append({"file": f"{frames_dir.name}/{q:04d}.exr", "light": frame["light"]})
+            return {"file": f"{frames_dir.name}/{q:04d}.exr", "light": frame["light"]}
+
+        frames = map_frames(rectify_frame, list(enumerate(capture["frames"])), threads, "rectify")
     geometry = {"grid": grid.to_dict(), "view_position": camera.centre.tolist(),
                 "visible": visible.astype(int).tolist(), "frames": frames,
                 "camera": {k: capture["camera"][k] for k in ("width", "height", "K", "R", "t")}}
