@@ -2,7 +2,7 @@
 #   make run   - set up .venv, install facetsynth, run the workflow on the demo sample
 #   make test  - set up .venv, install facetsynth with test extras, run the test suite
 #   make bench - run every preset (fast, balanced, accurate) on demo, wallpaper and satin and write
-#                results/bench/tradeoff.csv and tradeoff.png (about 40 min on 2 cores); restrict with
+#                results/bench/tradeoff.csv and tradeoff.png (about 17 min on 2 cores); restrict with
 #                make bench BENCH_PRESETS=fast BENCH_SCENES=demo, or BENCH_ARGS=--dry-run
 
 PYTHON ?= $(shell command -v python3.11 || command -v python3)
