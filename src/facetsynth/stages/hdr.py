@@ -60,10 +60,10 @@ def run(capture_dir: str | Path, frames_dir: str | Path, manifest_out: str | Pat
                 out_frame["truth"] = {"radiance": os.path.relpath(frame["truth"]["radiance"], manifest_out.parent)}
             return out_frame, int(saturated.sum()), errors
 
-        merged = map_frames(merge_frame, list(enumerate(capture["frames"])), threads, "hdr")
-    frames = [frame for frame, _, _ in merged]
-    saturated_total = sum(count for _, count, _ in merged)
-    errors = [e for _, _, e in merged if e is not None]
+        per_frame = map_frames(merge_frame, list(enumerate(capture["frames"])), threads, "hdr")
+    frames = [frame for frame, _, _ in per_frame]
+    saturated_total = sum(count for _, count, _ in per_frame)
+    errors = [e for _, _, e in per_frame if e is not None]
     hdr_manifest = {k: v for k, v in capture.items() if k not in ("frames", "saturation", "_dir")}
     hdr_manifest["frames"] = frames
     hdr_manifest["noise"] = {"read_sigma": 0.0, "shot_gain": 0.0}
