@@ -105,6 +105,7 @@ def run(geometry: str | Path, ndf: str | Path, confidence: str | Path, grid_path
     ex_w = np.concatenate([np.asarray(src[1][src[3]], np.float32) for src in sources])
     ex_d = None if skip else np.concatenate([np.asarray(src[0][src[3]], np.float32) for src in sources])
     spectra = None if skip else syn.ExemplarSpectra(ex_d, ex_w, grid, ex_index)
+    concentration = None if skip else _orientation_concentration(ex_d, ex_w, grid, isotropic_threshold)
     mask = np.median(ex_w > syn.SUPPORT, axis=0) > 0.5           # the view's domain Omega (Fig. 7)
     target = syn.hemisphere_target(mask, grid)
     shifts = syn.region_shifts(mask, grid, n_regions, *overlap)
@@ -187,15 +188,40 @@ def run(geometry: str | Path, ndf: str | Path, confidence: str | Path, grid_path
             if mode == search:
                 metrics[key] = value
     metrics["ground_truth"] = truth is not None
+    # Rotation diversity is decided from the exemplars' lobe axes: one axis everywhere is insufficient even
+    # where broad lobes match themselves at wrong rotations (then few representatives stall), and stalls
+    # alone also come from noise (wallpaper with sensor noise: 17 of 32). docs/decisions.md.
+    metrics["orientation_concentration"] = concentration
+    metrics["insufficient_rotation_diversity"] = bool(concentration is not None
+                                                      and concentration >= syn.SINGLE_ORIENTATION)
     if metrics["insufficient_rotation_diversity"]:
-        log.warning("INSUFFICIENT ROTATION DIVERSITY: %d of %d representatives could not be completed from "
-                    "rotated exemplars (no exemplar matched within relative error %.2f); their NDFs are only "
-                    "push-pull extensions of the partial data (coverage before fill %.2f). Capture the sample "
-                    "at further rotations (e.g. turned by 30 and 60 deg) and list each capture in the sample sheet "
-                    "with rotation_of = this sample: they join its exemplars (paper 002 sec. 4).",
-                    metrics["stalled_representatives"], len(reps), max_relative_error, metrics["coverage_before_fill"])
+        log.warning("INSUFFICIENT ROTATION DIVERSITY: the anisotropic exemplars' lobe axes all point one way "
+                    "(concentration %.2f >= %.2f), so no exemplar shows this material at another rotation; %d of %d "
+                    "representatives stalled (no match within relative error %.2f, coverage before fill %.2f) "
+                    "and the others may be completed from wrong rotations. Capture the sample at further rotations "
+                    "(e.g. turned by 60 and 120 deg) and list each capture in the sample sheet with rotation_of = "
+                    "this sample: they join its exemplars (paper 002 sec. 4).", concentration,
+                    syn.SINGLE_ORIENTATION, metrics["stalled_representatives"], len(reps), max_relative_error,
+                    metrics["coverage_before_fill"])
+    elif metrics["stalled_majority"]:
+        log.warning("%d of %d representatives stalled (no exemplar within relative error %.2f) although the "
+                    "lobe axes vary (concentration %s): noisy or narrow partial NDFs, not missing rotations; their "
+                    "NDFs are push-pull extensions beyond the merged domain.", metrics["stalled_representatives"],
+                    len(reps), max_relative_error, "n/a" if concentration is None else f"{concentration:.2f}")
     log.info("synthesize metrics: %s", {k: v for k, v in metrics.items() if not isinstance(v, list)})
     write_json(metrics_out, metrics)
+
+
+def _orientation_concentration(ex_d, ex_w, grid: DirectionGrid, isotropic_threshold: float) -> float | None:
+    """:func:`facetsynth.synthesis.orientation_concentration` over the exemplars whose partial NDF is
+    anisotropic (:func:`facetsynth.synthesis.anisotropy` >= ``isotropic_threshold``); None without any."""
+    axes = []
+    for t in tiles(len(ex_d), 512):
+        d, w = np.asarray(ex_d[t], float), np.asarray(ex_w[t], float)
+        axes.append(syn.orientation(d, w, grid)[syn.anisotropy(d, w, grid) >= isotropic_threshold])
+    axes = np.concatenate(axes) if axes else np.zeros(0, complex)
+    value = syn.orientation_concentration(axes)
+    return None if not np.isfinite(value) else value
 
 
 def exemplar_pool(capture: RectifiedCapture, budget: int) -> np.ndarray:
@@ -211,7 +237,7 @@ def _summary(comps, seconds, build, stalled_fraction) -> dict:
     return {"coverage_before_fill": float(np.mean(cov)), "coverage_before_fill_min": float(np.min(cov)),
             "iterations_median": float(np.median([c.iterations for c in comps])),
             "stalled_representatives": int(stalled.sum()),
-            "insufficient_rotation_diversity": bool(stalled.mean() >= stalled_fraction),
+            "stalled_majority": bool(stalled.mean() >= stalled_fraction),
             "merge_relative_error_median": float(np.median([m["relative_error"] for m in merged])) if merged else None,
             "exact_fallback_iterations": int(sum(c.fallbacks for c in comps)),
             "merges": int(len(merged)),
