@@ -39,8 +39,9 @@ log = logging.getLogger(__name__)
 
 SUPPORT = 1e-6      # W above this is inside the domain Omega
 # Orientation concentration (:func:`orientation_concentration`) of the anisotropic exemplars at and above which
-# a sample has a single lobe axis, whatever the stalls say (measured: brushed at alpha 0.04-0.12 across the brush
-# 0.94-0.97; satin's two thread directions 0.65, wallpaper 0.41, demo 0.35; docs/decisions.md).
+# a sample has a single lobe axis, whatever the stalls say (measured over the exemplars: brushed at alpha 0.04-0.12
+# across the brush 0.93-0.96, turned captures added 0.14-0.20; satin's two thread directions 0.32, wallpaper 0.17,
+# demo 0.05; docs/decisions.md).
 SINGLE_ORIENTATION = 0.85
 TINY = 1e-30
 
