@@ -457,6 +457,21 @@ def ring_means(values: np.ndarray, w: np.ndarray, grid: DirectionGrid) -> tuple[
     return np.where(covered, means, 0.0), covered
 
 
+def _ring_harmonics(d: np.ndarray, w: np.ndarray, grid: DirectionGrid, order: int):
+    """Per theta ring, the W dw-weighted least-squares fit of D (..., T, F) on the ring's domain cells by
+    a + sum_k (b_k cos(k phi) + c_k sin(k phi)), k = 1 .. ``order``. Returns (coefficients (..., T, n) in
+    the order 1, cos phi, sin phi, cos 2 phi, ..., the basis (F, n), the weights W dw (..., T, F)); a
+    small ridge keeps rings with fewer than n domain cells solvable."""
+    w = np.clip(np.asarray(w, float), 0.0, None)
+    ww = np.where(w > SUPPORT, w, 0.0) * grid.solid_angles
+    ph = grid.phi
+    basis = np.stack([np.ones_like(ph)] + [f(k * ph) for k in range(1, order + 1) for f in (np.cos, np.sin)], -1)
+    a = np.einsum("...tf,fi,fj->...tij", ww, basis, basis)
+    b = np.einsum("...tf,...tf,fi->...ti", ww, np.asarray(d, float), basis)
+    a = a + (1e-9 * np.trace(a, axis1=-2, axis2=-1)[..., None, None] + 1e-300) * np.eye(basis.shape[1])
+    return np.linalg.solve(a, b[..., None])[..., 0], basis, ww
+
+
 def anisotropy(d: np.ndarray, w: np.ndarray, grid: DirectionGrid) -> np.ndarray:
     """Relative L2 deviation (...,) of a partial NDF from azimuthal symmetry, over its domain.
 
@@ -473,13 +488,8 @@ def anisotropy(d: np.ndarray, w: np.ndarray, grid: DirectionGrid) -> np.ndarray:
     Measured values and the threshold: docs/decisions.md.
     """
     d = np.asarray(d, float)
-    w = np.clip(np.asarray(w, float), 0.0, None)
-    ww = np.where(w > SUPPORT, w, 0.0) * grid.solid_angles
-    basis = np.stack([np.ones_like(grid.phi), np.cos(grid.phi), np.sin(grid.phi)], -1)      # (F, 3)
-    a = np.einsum("...tf,fi,fj->...tij", ww, basis, basis)
-    b = np.einsum("...tf,...tf,fi->...ti", ww, d, basis)
-    a = a + (1e-9 * np.trace(a, axis1=-2, axis2=-1)[..., None, None] + 1e-300) * np.eye(3)   # rings of < 3 cells
-    fit = np.einsum("...ti,fi->...tf", np.linalg.solve(a, b[..., None])[..., 0], basis)
+    coefficients, basis, ww = _ring_harmonics(d, w, grid, order=1)
+    fit = np.einsum("...ti,fi->...tf", coefficients, basis)
     num = np.sum(ww * (d - fit) ** 2, axis=(-2, -1))
     den = np.sum(ww * d**2, axis=(-2, -1))
     return np.where(den > TINY, np.sqrt(num / np.where(den > TINY, den, 1.0)), np.inf)
@@ -497,15 +507,7 @@ def orientation(d: np.ndarray, w: np.ndarray, grid: DirectionGrid) -> np.ndarray
     capture, so psi compares points of one capture (and of captures of the
     same rig turned, paper 002 sec. 4). An empty tuple gives 0.
     """
-    d = np.asarray(d, float)
-    w = np.clip(np.asarray(w, float), 0.0, None)
-    ww = np.where(w > SUPPORT, w, 0.0) * grid.solid_angles
-    ph = grid.phi
-    basis = np.stack([np.ones_like(ph), np.cos(ph), np.sin(ph), np.cos(2 * ph), np.sin(2 * ph)], -1)   # (F, 5)
-    a = np.einsum("...tf,fi,fj->...tij", ww, basis, basis)
-    b = np.einsum("...tf,...tf,fi->...ti", ww, d, basis)
-    a = a + (1e-9 * np.trace(a, axis1=-2, axis2=-1)[..., None, None] + 1e-300) * np.eye(5)   # rings of < 5 cells
-    c = np.linalg.solve(a, b[..., None])[..., 0]
+    c, _, ww = _ring_harmonics(d, w, grid, order=2)
     return np.sum((c[..., 3] + 1j * c[..., 4]) * ww.sum(axis=-1), axis=-1)
 
 

@@ -145,16 +145,18 @@ def capture(scene_path: str | Path, rig: VirtualRig, out_dir: str | Path, seed: 
             log.info("virtual rig: %s on %s", info, port)
             driver.home()
 
+            plan = rig.scan()
+
             def scan():
                 """Drive the rig through the scan; the virtual camera sees the hardware, not the loop."""
-                for q, (steps, led) in enumerate(rig.scan()):
+                for q, (steps, led) in enumerate(plan):
                     if driver.position() != steps:
                         driver.move_to(steps)
                     driver.led_on(led)
                     state = controller.state()
                     yield q, rig.led_position(state.lit_led, state.position), int(state.lit_led), int(state.position)
 
-            frames = map_frames(expose_frame, scan(), threads, "capture", total=len(rig.scan()))
+            frames = map_frames(expose_frame, scan(), threads, "capture", total=len(plan))
             driver.leds_off()
         manifest_io.save(staging / "manifest.json", {
             "version": 1, "units": "m",
