@@ -19,6 +19,23 @@ def test_exr_round_trip_keeps_channels_and_header(tmp_path):
     assert read_rgb(tmp_path / "b.exr").shape == (2, 3, 3)
 
 
+def test_measured_frames_keep_the_float32_range_to_fifteen_mantissa_bits(tmp_path):
+    """precision="float24" (PXR24, the hdr and rectify frames): relative error <= 2^-16 over float32's
+    range, where half floats (65504 at most) would overflow a 16-bit camera's radiance."""
+    rng = np.random.default_rng(1)
+    rgb = (10.0 ** rng.uniform(-30, 30, (16, 16, 3))).astype(np.float32)
+    rgb[0, 0] = [0.0, 1.0, 65535.0 / 1e-4]
+    mask = (rng.random((16, 16)) > 0.5).astype(np.float32)
+    write_exr(tmp_path / "m.exr", {"RGB": rgb, "saturated": mask}, precision="float24")
+    channels, _ = read_exr(tmp_path / "m.exr")
+    relative = np.abs(channels["RGB"] - rgb) / rgb.clip(np.finfo(np.float32).tiny)
+    assert relative.max() <= 2.0**-16 and relative.max() > 0                  # lossy, within its bound
+    assert channels["RGB"][0, 0, :2].tolist() == [0.0, 1.0] and np.isfinite(channels["RGB"]).all()
+    np.testing.assert_array_equal(channels["saturated"], mask)
+    with pytest.raises(KeyError):
+        write_exr(tmp_path / "x.exr", {"RGB": rgb}, precision="float8")
+
+
 def test_truncated_exr_is_an_error_naming_the_file(tmp_path):
     write_exr(tmp_path / "full.exr", {"RGB": np.ones((64, 64, 3))})
     data = (tmp_path / "full.exr").read_bytes()

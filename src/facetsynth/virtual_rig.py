@@ -133,10 +133,10 @@ def capture(scene_path: str | Path, rig: VirtualRig, out_dir: str | Path, seed: 
             for e, t in enumerate(exposure["times"]):
                 value = expose(true_radiance, t, exposure["saturation"], read_sigma, shot_gain, rng_frame)
                 name = f"frames/{q:04d}_e{e}.exr"
-                write_exr(staging / name, {"RGB": value}, {"exposure_time": float(t)}, half=True)
+                write_exr(staging / name, {"RGB": value}, {"exposure_time": float(t)}, precision="float16")
                 exposures.append({"file": name, "time": float(t)})
             truth_name = f"truth/radiance_{q:04d}.exr"
-            write_exr(staging / truth_name, {"RGB": true_radiance}, half=True)
+            write_exr(staging / truth_name, {"RGB": true_radiance}, precision="float16")
             return {"light": {"position": light.tolist(), "intensity": intensities[led].tolist()},
                     "exposures": exposures, "truth": {"radiance": truth_name}, "led": led, "carriage_steps": steps}
 

@@ -49,7 +49,7 @@ def run(capture_dir: str | Path, frames_dir: str | Path, manifest_out: str | Pat
             else:
                 values = np.stack([_read_exposure(e["file"], shape) for e in frame["exposures"]])
                 merged, saturated = merge_exposures(values, times, sensor)
-                write_exr(out, {"RGB": merged, "saturated": saturated.astype(np.float32)})
+                write_exr(out, {"RGB": merged, "saturated": saturated.astype(np.float32)}, precision="float24")
             out_frame = {"light": frame["light"], "exposures": [{"file": f"{frames_dir.name}/{q:04d}.exr", "time": 1.0}]}
             errors = None
             if "radiance" in frame.get("truth", {}):

@@ -15,7 +15,7 @@ from .common import RectifiedCapture, tiles
 
 log = logging.getLogger(__name__)
 
-METRIC_POINTS = 1024  # points on which the accuracy of every variant is measured
+METRIC_POINTS = 1024  # points on which the accuracy against the truth is measured
 
 
 def run(geometry: str | Path, slice_path: str | Path, coverage_path: str | Path, grid_path: str | Path,
@@ -25,9 +25,9 @@ def run(geometry: str | Path, slice_path: str | Path, coverage_path: str | Path,
 
     For virtual captures, accuracy is measured against
     :func:`facetsynth.partial_ndf.recoverable_ndf` over cells with W >= 0.5,
-    on every k-th point (at most METRIC_POINTS), where the other shadowing
-    method and the other view model are also run: all figures are on the
-    same points.
+    on the points :func:`scored_points` picks. The other shadowing method and
+    view model are compared on the same points by :func:`variant_errors`
+    (a test, not every run: it fits the points again per variant).
     """
     capture = RectifiedCapture.load(geometry)
     grid = DirectionGrid.from_dict(read_json(grid_path))
@@ -35,28 +35,22 @@ def run(geometry: str | Path, slice_path: str | Path, coverage_path: str | Path,
     cover = np.load(coverage_path, mmap_mode="r")
     n = capture.n_points
     truth = capture.truth()
-    variants = {"_constrained": (per_point_view, True), "_unconstrained": (per_point_view, False),
-                "_centre_view": (False, constrained), "_per_point_view": (True, constrained)}
-    scored = np.zeros(n, bool)
-    if truth is not None:
-        scored[:: max(1, n // METRIC_POINTS)] = True
-        scored &= capture.visible & (truth.region >= 0)
-    errors = {name: [] for name in variants}
+    scored = scored_points(capture, truth)
+    errors = []
     iterations, converged = np.zeros(n, int), np.zeros(n, bool)
     with atomic_path(ndf_out, suffix=".npy") as tmp_ndf, atomic_path(confidence_out, suffix=".npy") as tmp_w:
         ndf = np.lib.format.open_memmap(tmp_ndf, mode="w+", dtype=np.float32, shape=(n,) + grid.shape)
         weight = np.lib.format.open_memmap(tmp_w, mode="w+", dtype=np.float32, shape=(n,) + grid.shape)
         for tile in tqdm(list(tiles(n)), desc="partial_ndf", unit="tile"):
             s, c = np.asarray(table[tile], float), np.asarray(cover[tile], float)
-            fit = pndf.fit(s, c, capture.view_directions(per_point_view)[tile], grid, constrained,
-                           grazing_deg, tol, max_iter)
+            view = capture.view_directions(per_point_view)[tile]
+            fit = pndf.fit(s, c, view, grid, constrained, grazing_deg, tol, max_iter)
             ndf[tile], weight[tile] = fit.ndf, fit.confidence
             iterations[tile], converged[tile] = fit.iterations, fit.converged
             pick = scored[tile]
             if pick.any():
-                _score_variants(errors, variants, s[pick], c[pick], truth.take(np.flatnonzero(scored[tile]) + tile.start),
-                                capture, np.flatnonzero(pick) + tile.start, grid, grazing_deg, tol, max_iter,
-                                own=((per_point_view, constrained), fit.ndf[pick], fit.confidence[pick]))
+                errors.append(_errors(fit.ndf[pick], fit.confidence[pick], view[pick],
+                                      truth.take(np.flatnonzero(pick) + tile.start), grid))
         ndf.flush()
         weight.flush()
         del ndf, weight
@@ -68,28 +62,50 @@ def run(geometry: str | Path, slice_path: str | Path, coverage_path: str | Path,
                "converged_fraction": float(converged.mean()), "grazing_deg": grazing_deg, "tolerance": tol}
     if truth is not None:
         metrics["scored_points"] = int(scored.sum())
-        for name, values in errors.items():
-            values = np.concatenate(values)
-            values = values[np.isfinite(values)]
-            metrics["ndf_rel_l2_median" + name] = float(np.median(values)) if values.size else None
-        chosen = "_constrained" if constrained else "_unconstrained"
-        metrics["ndf_rel_l2_median"] = metrics["ndf_rel_l2_median" + chosen]
-        log.info("partial NDF relative L2, median: %s",
-                 {k: round(v, 4) for k, v in metrics.items() if k.startswith("ndf_") and v is not None})
+        metrics["ndf_rel_l2_median"] = _median(errors)
+        log.info("partial NDF relative L2 against the truth, median: %s", metrics["ndf_rel_l2_median"])
     write_json(metrics_out, metrics)
 
 
-def _score_variants(errors, variants, s, c, maps, capture, index, grid, grazing_deg, tol, max_iter, own) -> None:
-    """Each variant's error on the scored points; ``own`` = ((per_point, constrained), D, W) of the stage's
-    own fit, which the variants that match it reuse instead of fitting again."""
-    true_ndf = maps.take((slice(None), None)).ndf(grid.directions.reshape(1, -1, 3)).reshape(s.shape)
-    own_variant, own_ndf, own_confidence = own
+def scored_points(capture: RectifiedCapture, truth) -> np.ndarray:
+    """Every k-th visible point on the truth's sample (at most METRIC_POINTS); none without a truth."""
+    scored = np.zeros(capture.n_points, bool)
+    if truth is not None:
+        scored[:: max(1, capture.n_points // METRIC_POINTS)] = True
+        scored &= capture.visible & (truth.region >= 0)
+    return scored
+
+
+def variant_errors(geometry: str | Path, slice_path: str | Path, coverage_path: str | Path, grid_path: str | Path,
+                   variants: dict[str, tuple[bool, bool]], grazing_deg: float = 80.0, tol: float = 1e-3,
+                   max_iter: int = 30) -> dict[str, float]:
+    """Median relative L2 error of each variant (per_point_view, constrained) on the scored points of a
+    virtual capture's resampled data: how the paper's choices (sec. 5.1, Fig. 5) compare on a scene."""
+    capture = RectifiedCapture.load(geometry)
+    grid = DirectionGrid.from_dict(read_json(grid_path))
+    truth = capture.truth()
+    if truth is None:
+        raise ValueError(f"{geometry}: variants are compared against the truth, and this capture has none")
+    index = np.flatnonzero(scored_points(capture, truth))
+    s = np.asarray(np.load(slice_path, mmap_mode="r")[index], float)
+    c = np.asarray(np.load(coverage_path, mmap_mode="r")[index], float)
+    maps = truth.take(index)
+    result = {}
     for name, (per_point, constrain) in variants.items():
         view = capture.view_directions(per_point)[index]
-        if (per_point, constrain) == own_variant:
-            ndf, confidence = own_ndf, own_confidence
-        else:
-            fit = pndf.fit(s, c, view, grid, constrain, grazing_deg, tol, max_iter)
-            ndf, confidence = fit.ndf, fit.confidence
-        reference = pndf.recoverable_ndf(maps.ks, maps.eta, true_ndf, view, grid)
-        errors[name].append(pndf.relative_l2(ndf, reference, confidence >= 0.5, grid))
+        fit = pndf.fit(s, c, view, grid, constrain, grazing_deg, tol, max_iter)
+        result[name] = _median([_errors(fit.ndf, fit.confidence, view, maps, grid)])
+    return result
+
+
+def _errors(ndf: np.ndarray, confidence: np.ndarray, view: np.ndarray, maps, grid: DirectionGrid) -> np.ndarray:
+    """Relative L2 error of partial NDFs against the recoverable truth over cells with W >= 0.5."""
+    true_ndf = maps.take((slice(None), None)).ndf(grid.directions.reshape(1, -1, 3)).reshape(ndf.shape)
+    reference = pndf.recoverable_ndf(maps.ks, maps.eta, true_ndf, view, grid)
+    return pndf.relative_l2(ndf, reference, confidence >= 0.5, grid)
+
+
+def _median(errors: list[np.ndarray]) -> float | None:
+    values = np.concatenate(errors) if errors else np.zeros(0)
+    values = values[np.isfinite(values)]
+    return float(np.median(values)) if values.size else None

@@ -45,7 +45,8 @@ def run(hdr_manifest: str | Path, frames_dir: str | Path, geometry_out: str | Pa
             if not out.exists():  # else rectified before an interruption
                 rgb, saturated = read_frame(frame["exposures"][0]["file"])
                 warped = warp_to_plane(np.dstack([rgb, saturated]), camera, grid, filtername)
-                write_exr(out, {"RGB": warped[..., :3], "saturated": (warped[..., 3] > 0).astype(np.float32)})
+                write_exr(out, {"RGB": warped[..., :3], "saturated": (warped[..., 3] > 0).astype(np.float32)},
+                          precision="float24")
             return {"file": f"{frames_dir.name}/{q:04d}.exr", "light": frame["light"]}
 
         frames = map_frames(rectify_frame, list(enumerate(capture["frames"])), threads, "rectify")
