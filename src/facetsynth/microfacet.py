@@ -100,9 +100,18 @@ def to_local(v, phi_frame):
     azimuth ``phi`` ends up at local azimuth ``phi - phi_frame``.  The z
     component is unchanged.  ``phi_frame`` broadcasts against ``v[..., 0]``.
     """
-    v = _f64(v)
+    return _rotate(v, _frame(phi_frame))
+
+
+def _frame(phi_frame):
+    """(cos, sin) of the frame azimuth: computed once where several directions go to one frame."""
     p = _f64(phi_frame)
-    c, s = np.cos(p), np.sin(p)
+    return np.cos(p), np.sin(p)
+
+
+def _rotate(v, frame):
+    v = _f64(v)
+    c, s = frame
     x, y, z = v[..., 0], v[..., 1], v[..., 2]
     xl = c * x + s * y
     yl = c * y - s * x
@@ -129,8 +138,11 @@ def ndf(h, alpha_u, alpha_v, phi_frame=0.0, kind="ggx"):
     D = 0 for h.n <= 0.  Beckmann is evaluated in the log domain, so it is
     finite (and underflows to 0) as h.n -> 0.  alphas must be > 0.
     """
-    kind = _check_kind(kind)
-    hl = to_local(h, phi_frame)
+    return _ndf_local(to_local(h, phi_frame), alpha_u, alpha_v, _check_kind(kind))
+
+
+def _ndf_local(hl, alpha_u, alpha_v, kind):
+    """:func:`ndf` of half vectors already in the local frame."""
     au = _f64(alpha_u)
     av = _f64(alpha_v)
     hx, hy, hz = hl[..., 0], hl[..., 1], hl[..., 2]
@@ -171,8 +183,11 @@ def projected_area(k, alpha_u, alpha_v, phi_frame=0.0, kind="ggx"):
     would be the smaller area c * Lambda, which vanishes at k = -n.)  S and
     rho are defined to be 0 there in any case.
     """
-    kind = _check_kind(kind)
-    kl = to_local(k, phi_frame)
+    return _projected_area_local(to_local(k, phi_frame), alpha_u, alpha_v, _check_kind(kind))
+
+
+def _projected_area_local(kl, alpha_u, alpha_v, kind):
+    """:func:`projected_area` of directions already in the local frame."""
     au = _f64(alpha_u)
     av = _f64(alpha_v)
     c = np.abs(kl[..., 2])
@@ -383,10 +398,12 @@ def rho(wi, wo, kd, ks, eta, alpha_u, alpha_v, phi_frame=0.0, kind="ggx"):
     ks = _f64(ks)
     h = half_vector(wi, wo)
     c = 0.5 * (np.abs(_dot(wi, h)) + np.abs(_dot(wo, h)))
-    d = ndf(h, alpha_u, alpha_v, phi_frame, kind)
+    kind = _check_kind(kind)
+    frame = _frame(phi_frame)                      # one cos / sin for the three directions
+    d = _ndf_local(_rotate(h, frame), alpha_u, alpha_v, kind)
     f = fresnel(c, eta)
-    a_i = projected_area(wi, alpha_u, alpha_v, phi_frame, kind)
-    a_o = projected_area(wo, alpha_u, alpha_v, phi_frame, kind)
+    a_i = _projected_area_local(_rotate(wi, frame), alpha_u, alpha_v, kind)
+    a_o = _projected_area_local(_rotate(wo, frame), alpha_u, alpha_v, kind)
     spec = d * f / (4.0 * (a_i * a_o))
     valid = (wi[..., 2] > 0.0) & (wo[..., 2] > 0.0)
     out = kd * (1.0 / np.pi) + ks * spec[..., None]
