@@ -71,7 +71,7 @@ def test_noise_free_demo_meets_the_reflectance_targets(demo_run):
                                           res / "resample/coverage.npy", res / "resample/grid.json",
                                           {"stage": (True, True), "unconstrained": (True, False),
                                            "centre_view": (False, True)})
-    assert variants["stage"] == ndf["ndf_rel_l2_median"]      # the same points, the same fit
+    assert variants["stage"] == pytest.approx(ndf["ndf_rel_l2_median"], rel=1e-6)   # the same points and fit
     assert variants["stage"] < variants["unconstrained"]
     assert variants["stage"] < variants["centre_view"]
     assert ndf["converged_fraction"] == 1.0

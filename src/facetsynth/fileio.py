@@ -85,12 +85,12 @@ def write_exr(path: PathLike, channels: dict[str, np.ndarray], header: dict[str,
     ``channels`` maps names to (H, W) arrays, or to (H, W, 3) arrays which
     OpenEXR stores as ``NAME.R/G/B`` (``"RGB"`` becomes plain R, G, B).
     ``header`` holds extra attributes (numbers, strings, 3x3 arrays).
-    ``precision``: ``"float32"`` lossless 32-bit floats (model parameters);
-    ``"float24"`` 32-bit floats stored with PXR24 compression, which keeps
+    ``precision``: ``"float32"``, lossless 32-bit floats (model parameters);
+    ``"float24"``, 32-bit floats stored with PXR24 compression, which keeps
     the float32 range and rounds the mantissa to 15 bits (relative error
     <= 2^-16 = 1.5e-5, far below any sensor's noise; on noisy frames 40 %
-    smaller and 1.5x faster to write than ZIP), for measured radiance; ``"float16"``
-    half floats, as a camera delivers its exposures.
+    smaller and 1.5x faster to write than ZIP), for measured radiance;
+    ``"float16"``, half floats, as a camera delivers its exposures.
     """
     dtype, compression = _PRECISIONS[precision]
     data = {name: np.ascontiguousarray(a, dtype=dtype) for name, a in channels.items()}
