@@ -38,12 +38,13 @@ def run(geometry: str | Path, slice_path: str | Path, coverage_path: str | Path,
     scored = scored_points(capture, truth)
     errors = []
     iterations, converged = np.zeros(n, int), np.zeros(n, bool)
+    views = capture.view_directions(per_point_view)
     with atomic_path(ndf_out, suffix=".npy") as tmp_ndf, atomic_path(confidence_out, suffix=".npy") as tmp_w:
         ndf = np.lib.format.open_memmap(tmp_ndf, mode="w+", dtype=np.float32, shape=(n,) + grid.shape)
         weight = np.lib.format.open_memmap(tmp_w, mode="w+", dtype=np.float32, shape=(n,) + grid.shape)
         for tile in tqdm(list(tiles(n)), desc="partial_ndf", unit="tile"):
             s, c = np.asarray(table[tile], float), np.asarray(cover[tile], float)
-            view = capture.view_directions(per_point_view)[tile]
+            view = views[tile]
             fit = pndf.fit(s, c, view, grid, constrained, grazing_deg, tol, max_iter)
             ndf[tile], weight[tile] = fit.ndf, fit.confidence
             iterations[tile], converged[tile] = fit.iterations, fit.converged
