@@ -45,6 +45,12 @@ __all__ = [
     "ndf_normalisation_numerical",
     "fresnel",
     "rho",
+    "smith_lambda",
+    "masking_shadowing",
+    "fresnel_conductor",
+    "conductor_equivalent_eta",
+    "CONDUCTORS",
+    "rho_extended",
 ]
 
 _KINDS = ("ggx", "beckmann")
@@ -407,4 +413,196 @@ def rho(wi, wo, kd, ks, eta, alpha_u, alpha_v, phi_frame=0.0, kind="ggx"):
     spec = d * f / (4.0 * (a_i * a_o))
     valid = (wi[..., 2] > 0.0) & (wo[..., 2] > 0.0)
     out = kd * (1.0 / np.pi) + ks * spec[..., None]
+    return np.where(valid[..., None], out, 0.0)
+
+
+# --------------------------------------------------------------------------
+# truth outside eq. 6: the virtual rig's other materials (docs/decisions.md,
+# "Truth outside eq. 6"). The pipeline fits eq. 6; these are what it meets.
+# --------------------------------------------------------------------------
+# Complex indices n + i k (relative to air) per linear RGB channel: the RGB
+# table of conductors of the Yocto/GL renderer (yocto_shading.h,
+# conductor_eta, entries "Cu" and "Au"), RGB reductions of measured spectral
+# optical constants as renderers use them (the copper values are also the
+# defaults of pbrt's "metal" material in Yocto/GL's pbrt loader). Normal-incidence reflectance
+# ((n-1)^2+k^2)/((n+1)^2+k^2): copper (0.952, 0.620, 0.511), gold (0.967, 0.802, 0.324).
+CONDUCTORS = {
+    "copper": ((0.2004376970, 0.9240334304, 1.1022119527), (3.9129485033, 2.4528477015, 2.1421879552)),
+    "gold": ((0.1431189557, 0.3749570432, 1.4424785571), (3.9831604247, 2.3857207478, 1.6032152899)),
+}
+
+
+def _excess_area_local(kl, alpha_u, alpha_v, kind):
+    """|k.n| Lambda(k) = A(k) - |k.n| >= 0 of directions in the local frame, without cancellation.
+
+    GGX:       A - c = q / (2 (sqrt(c^2 + q) + c)),  q = alpha_k^2 sin^2(theta_k)
+    Beckmann:  A - c = sqrt(q) exp(-a^2) / (2 sqrt(pi)) - c erfc(a) / 2,  a = c / sqrt(q)
+    (:func:`projected_area` minus c; Heitz 2014 eqs. 72 and 86 times c.)
+    """
+    from scipy.special import erfc
+    au = _f64(alpha_u)
+    av = _f64(alpha_v)
+    c = np.abs(kl[..., 2])
+    q = (au * kl[..., 0]) ** 2 + (av * kl[..., 1]) ** 2
+    if kind == "ggx":
+        den = np.sqrt(c * c + q) + c
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(den > 0.0, 0.5 * q / np.where(den > 0.0, den, 1.0), 0.0)
+    sq = np.sqrt(q)
+    pos = sq > 0.0
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore", under="ignore"):
+        a = np.where(pos, c / np.where(pos, sq, 1.0), np.inf)
+        tail = np.where(pos, sq * np.exp(-a * a) * (0.5 * _INV_SQRT_PI), 0.0)
+    return np.maximum(tail - 0.5 * c * erfc(a), 0.0)
+
+
+def smith_lambda(k, alpha_u, alpha_v, phi_frame=0.0, kind="ggx"):
+    """Smith's Lambda(k) of the (anisotropic) GGX or Beckmann NDF (Heitz 2014, eqs. 72 and 86).
+
+    GGX: Lambda = (-1 + sqrt(1 + alpha_k^2 tan^2 theta_k)) / 2;  Beckmann:
+    Lambda = (erf(a) - 1)/2 + exp(-a^2)/(2 a sqrt(pi)), a = 1/(alpha_k tan theta_k);
+    alpha_k^2 = alpha_u^2 cos^2 phi_k + alpha_v^2 sin^2 phi_k (local azimuth).
+    Related to eq. 5 by A(k) = |k.n| (1 + Lambda(k)), so S(k) = G1(k) = 1/(1 + Lambda(k)).
+    Lambda(n) = 0, Lambda -> inf at grazing (returned as inf for k.n = 0), |k.n| semantics below
+    the horizon as :func:`projected_area`.
+    """
+    kl = to_local(k, phi_frame)
+    e = _excess_area_local(kl, alpha_u, alpha_v, _check_kind(kind))
+    c = np.abs(kl[..., 2])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(c > 0.0, e / np.where(c > 0.0, c, 1.0), np.inf)
+
+
+def masking_shadowing(wi, wo, alpha_u, alpha_v, phi_frame=0.0, kind="ggx", correlated=True):
+    """Smith's masking-shadowing term G2(i, o) (Heitz 2014, sec. 6).
+
+    ``correlated=True``: the height-correlated form  G2 = 1 / (1 + Lambda(i) + Lambda(o))  (Heitz 2014
+    eq. 99); ``False``: the separable form of eq. 5,  G2 = G1(i) G1(o) = S(i) S(o).  Computed with
+    E(k) = |k.n| Lambda(k) as  G2 = c_i c_o / (c_i c_o + c_o E(i) + c_i E(o)), finite at grazing.
+    Always G1(i) G1(o) <= G2_correlated <= min(G1(i), G1(o)), with equality when i or o is n.
+    0 where i.n <= 0 or o.n <= 0.
+    """
+    kind = _check_kind(kind)
+    frame = _frame(phi_frame)
+    wi, wo = _f64(wi), _f64(wo)
+    li, lo = _rotate(wi, frame), _rotate(wo, frame)
+    ci, co = np.abs(li[..., 2]), np.abs(lo[..., 2])
+    ei = _excess_area_local(li, alpha_u, alpha_v, kind)
+    eo = _excess_area_local(lo, alpha_u, alpha_v, kind)
+    if correlated:
+        den = ci * co + co * ei + ci * eo
+    else:
+        den = (ci + ei) * (co + eo)
+    valid = (wi[..., 2] > 0.0) & (wo[..., 2] > 0.0) & (den > 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(valid, ci * co / np.where(valid, den, 1.0), 0.0)
+
+
+def fresnel_conductor(cos_ih, n, k):
+    """Exact unpolarised Fresnel reflectance of a conductor, complex index n + i k, from air.
+
+    With c = |i.h|, s^2 = 1 - c^2 and (Born and Wolf; the form of PBRT v3's FrConductor)
+
+        t0 = n^2 - k^2 - s^2,   a^2 + b^2 = sqrt(t0^2 + 4 n^2 k^2),   a = sqrt((a^2 + b^2 + t0) / 2)
+        Rs = (a^2 + b^2 - 2 a c + c^2) / (a^2 + b^2 + 2 a c + c^2)
+        Rp = Rs (c^2 (a^2 + b^2) - 2 a c s^2 + s^4) / (c^2 (a^2 + b^2) + 2 a c s^2 + s^4)
+        F  = (Rs + Rp) / 2
+
+    (Rp's usual sin(theta) tan(theta) form multiplied through by c^2, so c = 0 needs no tan).
+    F(c = 1) = ((n - 1)^2 + k^2) / ((n + 1)^2 + k^2), F -> 1 at grazing (c -> 0).
+    ``cos_ih`` broadcasts against ``n[..., 0]``; ``n``, ``k`` are (..., 3) per RGB channel (any
+    trailing size); the result has the broadcast shape of ``cos_ih[..., None]`` and ``n``.
+    """
+    c = np.clip(np.abs(_f64(cos_ih)), 0.0, 1.0)[..., None]
+    n, k = _f64(n), _f64(k)
+    s2 = 1.0 - c * c
+    t0 = n * n - k * k - s2
+    ab = np.sqrt(t0 * t0 + 4.0 * n * n * k * k)
+    a = np.sqrt(np.maximum(0.5 * (ab + t0), 0.0))
+    c2 = c * c
+    rs_den = ab + 2.0 * a * c + c2
+    rp_num = c2 * ab - 2.0 * a * c * s2 + s2 * s2
+    rp_den = c2 * ab + 2.0 * a * c * s2 + s2 * s2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rs = np.where(rs_den > 0.0, (ab - 2.0 * a * c + c2) / np.where(rs_den > 0.0, rs_den, 1.0), 1.0)
+        rp = rs * np.where(rp_den > 0.0, rp_num / np.where(rp_den > 0.0, rp_den, 1.0), 1.0)
+    return np.clip(0.5 * (rs + rp), 0.0, 1.0)
+
+
+def conductor_equivalent_eta(n, k):
+    """The dielectric eta with the conductor's channel-mean normal-incidence reflectance F0:
+    eta = (1 + sqrt(F0)) / (1 - sqrt(F0)) (eq. 3 at c = 1 inverted). A placeholder for the
+    scalar eta map of a conductor region (its true Fresnel is :func:`fresnel_conductor`)."""
+    n, k = _f64(n), _f64(k)
+    f0 = np.mean(((n - 1.0) ** 2 + k * k) / ((n + 1.0) ** 2 + k * k), axis=-1)
+    r = np.sqrt(np.clip(f0, 0.0, 1.0 - 1e-12))
+    return (1.0 + r) / (1.0 - r)
+
+
+def rho_extended(wi, wo, kd, ks, eta, alpha_u, alpha_v, phi_frame=0.0, kind="ggx", *,
+                 correlated=None, conductor=None, coat=None):
+    """Eq. 6 with the virtual rig's departures from it, per point, shape ``(..., 3)``, in 1/sr.
+
+    Base lobe (eq. 6 with two options)::
+
+        rho_b = kd/pi + ks * D(h) F G2 / (4 (i.n)(o.n))
+
+    * ``correlated`` (bool, ``(...)``): G2 is the height-correlated Smith term
+      1/(1 + Lambda(i) + Lambda(o)) (Heitz 2014 eq. 99) where True, eq. 5's S(i) S(o) elsewhere
+      (evaluated as in :func:`rho`, 1/(4 A(i) A(o))).
+    * ``conductor`` (complex, ``(..., 3)``): F is the exact conductor Fresnel
+      :func:`fresnel_conductor` with n + i k per RGB channel where the row is non-zero, eq. 3 with
+      ``eta`` where it is all zero. ``ks`` still multiplies (1 for a bare metal).
+
+    Clear coat, ``coat`` = ``(..., 3)`` rows (eta_c, alpha_c, w), w in [0, 1] (w = 0: no coat)::
+
+        rho = w D_c(h) F(|i.h|, eta_c) / (4 A_c(i) A_c(o))
+              + (1 - w F(i.n, eta_c)) (1 - w F(o.n, eta_c)) rho_b
+
+    a white isotropic GGX specular lobe (alpha_c, eq. 5 shadowing) of the coat's dielectric
+    surface, over the base attenuated by the coat's Fresnel transmission in and out at the
+    macro normal (no refraction of the base lobe, no inter-reflection: a simple, reciprocal,
+    energy-bounded layer). Reciprocal and non-negative in every case; 0 (all channels) where
+    i.n <= 0 or o.n <= 0. With every option off it equals :func:`rho` bit for bit.
+    """
+    wi = _f64(wi)
+    wo = _f64(wo)
+    kd = _f64(kd)
+    ks = _f64(ks)
+    h = half_vector(wi, wo)
+    c = 0.5 * (np.abs(_dot(wi, h)) + np.abs(_dot(wo, h)))
+    kind = _check_kind(kind)
+    frame = _frame(phi_frame)
+    li, lo = _rotate(wi, frame), _rotate(wo, frame)
+    d = _ndf_local(_rotate(h, frame), alpha_u, alpha_v, kind)
+    a_i = _projected_area_local(li, alpha_u, alpha_v, kind)
+    a_o = _projected_area_local(lo, alpha_u, alpha_v, kind)
+    den = 4.0 * (a_i * a_o)                     # 4 (i.n)(o.n) / (S(i) S(o)), eq. 5 (as in rho)
+    if correlated is not None:
+        ci, co = np.abs(li[..., 2]), np.abs(lo[..., 2])
+        corr = ci * co + co * _excess_area_local(li, alpha_u, alpha_v, kind) \
+            + ci * _excess_area_local(lo, alpha_u, alpha_v, kind)
+        corr = np.maximum(corr, np.finfo(np.float64).tiny)   # both directions at the horizon: no Inf
+        den = np.where(np.asarray(correlated, bool), 4.0 * corr, den)
+    f = fresnel(c, eta)[..., None]
+    if conductor is not None:
+        cond = np.asarray(conductor, dtype=np.complex128)
+        metal = np.any(cond != 0, axis=-1)
+        f = np.where(metal[..., None], fresnel_conductor(c, cond.real, cond.imag), f)
+    spec = d[..., None] * f / den[..., None]   # the order of rho's d * f / (4 A A): equal bits
+    out = kd * (1.0 / np.pi) + ks * spec
+    if coat is not None:
+        coat = _f64(coat)
+        eta_c, alpha_c, w = coat[..., 0], coat[..., 1], coat[..., 2]
+        on = w > 0
+        alpha_c = np.where(on, alpha_c, 1.0)
+        dc = _ndf_local(_rotate(h, frame), alpha_c, alpha_c, "ggx")
+        ac_i = _projected_area_local(li, alpha_c, alpha_c, "ggx")
+        ac_o = _projected_area_local(lo, alpha_c, alpha_c, "ggx")
+        eta_c = np.where(on, eta_c, 1.0)
+        lobe = w * dc * fresnel(c, eta_c) / (4.0 * (ac_i * ac_o))
+        t_i = 1.0 - w * fresnel(wi[..., 2], eta_c)
+        t_o = 1.0 - w * fresnel(wo[..., 2], eta_c)
+        out = out * (t_i * t_o)[..., None] + lobe[..., None]
+    valid = (wi[..., 2] > 0.0) & (wo[..., 2] > 0.0)
     return np.where(valid[..., None], out, 0.0)

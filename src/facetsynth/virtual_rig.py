@@ -8,11 +8,19 @@ position, lit LED), not from the loop's own bookkeeping. Each frame is
 rendered with the pixel model of DESIGN.md sec. 4 (eq. 8 read forwards),
 exposed through a bracket with sensor noise and saturation, and written as EXR
 with a capture manifest; the ground truth (scene, true radiance) goes beside it.
+
+Calibration error (the description's ``calibration_error``): the rig renders
+with LED intensities, LED positions and a camera pose that differ from its
+calibration by seeded random amounts, while the manifest records the nominal
+(calibrated) values, as a real rig's calibration would; the true values go to
+``truth/calibration.json``. Without it a capture is what it always was.
 """
 
 from __future__ import annotations
 
+import copy
 import logging
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -22,7 +30,7 @@ import yaml
 
 from . import manifest as manifest_io
 from .camera import Camera
-from .fileio import atomic_dir, read_yaml, write_exr
+from .fileio import atomic_dir, read_yaml, write_exr, write_json
 from .frames import map_frames
 from .render import expose, radiance
 from .rig.driver import RigController
@@ -76,6 +84,27 @@ class VirtualRig:
         spread = leds.get("variation", 0.0) * rng.standard_normal((leds["count"], 3))
         return np.asarray(leds["intensity"]) * np.clip(1.0 + spread, 0.5, 1.5)
 
+    def calibration_error(self) -> "CalibrationError | None":
+        """The rig's true departures from its calibration (``calibration_error``), or None without any.
+
+        Drawn from their own stream, ``numpy.random.default_rng(seed)`` (not the capture's), in this
+        order: relative intensity errors N(0, led_intensity^2) per LED and RGB channel (factor
+        1 + e, clipped to [0.5, 1.5]); position offsets N(0, led_position_m^2) per LED and axis
+        (metres; each LED keeps its offset at every carriage position); a camera rotation about
+        its centre by exactly camera_rotation_deg about a uniformly random axis.
+        """
+        e = self.desc.get("calibration_error")
+        if not e or not any(e.get(k, 0.0) > 0 for k in ("led_intensity", "led_position_m", "camera_rotation_deg")):
+            return None
+        count = self.desc["leds"]["count"]
+        rng = np.random.default_rng(e.get("seed", 0))
+        factor = np.clip(1.0 + e.get("led_intensity", 0.0) * rng.standard_normal((count, 3)), 0.5, 1.5)
+        offset = e.get("led_position_m", 0.0) * rng.standard_normal((count, 3))
+        axis = rng.standard_normal(3)
+        axis /= np.linalg.norm(axis)
+        return CalibrationError(intensity_factor=factor, led_offset=offset,
+                                camera_rotation=_rotation(axis, np.radians(e.get("camera_rotation_deg", 0.0))))
+
     def camera(self, sample_width: float) -> Camera:
         """The rig's camera looking at the sample centre from distance d, height h."""
         c = self.desc["camera"]
@@ -86,6 +115,54 @@ class VirtualRig:
         return Camera.look_at(position, [0.0, 0.0, 0.0], c["width"], c["height_px"], focal)
 
 
+@dataclass(frozen=True)
+class CalibrationError:
+    """How the virtual rig truly differs from its calibration (the manifest keeps the calibration)."""
+
+    intensity_factor: np.ndarray   # (count, 3): true intensity = calibrated intensity * factor
+    led_offset: np.ndarray         # (count, 3) metres: true LED position = nominal + offset
+    camera_rotation: np.ndarray    # (3, 3) Q: true R = Q R_nominal (a rotation about the camera centre)
+
+    def camera(self, nominal: Camera) -> Camera:
+        """The true camera: the nominal one turned by Q about its own centre (same K, same centre)."""
+        R = self.camera_rotation @ nominal.R
+        return Camera(nominal.width, nominal.height, nominal.K, R, -R @ nominal.centre, nominal.distortion)
+
+    def record(self, settings: dict[str, Any], nominal: Camera) -> dict[str, Any]:
+        """The truth file ``truth/calibration.json``: settings and the true values."""
+        true = self.camera(nominal)
+        angle = np.degrees(np.arccos(np.clip((np.trace(self.camera_rotation) - 1.0) / 2.0, -1.0, 1.0)))
+        return {"settings": settings, "led_intensity_factor": self.intensity_factor.tolist(),
+                "led_offset_m": self.led_offset.tolist(), "camera_rotation_deg": float(angle),
+                "camera": {"R": true.R.tolist(), "t": true.t.tolist(), "Q": self.camera_rotation.tolist()}}
+
+
+def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
+    """Rodrigues: the rotation by ``angle`` (radians) about the unit ``axis``."""
+    k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+    return np.eye(3) + np.sin(angle) * k + (1.0 - np.cos(angle)) * (k @ k)
+
+
+def _portable_truth(scene_dict: dict[str, Any], scene: Scene) -> tuple[dict[str, Any], dict[str, str]]:
+    """The truth copy of the scene and the measured files to copy beside it: each region's
+    ``measured.file`` becomes ``brdfs/NAME`` (relative to ``truth/scene.yaml``), so the capture's
+    truth does not depend on where the scene file was. Scenes without measured regions are unchanged."""
+    if not any("measured" in r for r in scene.regions):
+        return scene_dict, {}
+    truth = copy.deepcopy(scene_dict)
+    copies: dict[str, str] = {}
+    for r, resolved in zip(truth["regions"], scene.regions):
+        if "measured" in r:
+            source = resolved["measured"]["file"]
+            if source not in copies:
+                name = Path(source).name
+                if name in copies.values():
+                    name = f"{len(copies)}_{name}"
+                copies[source] = name
+            r["measured"]["file"] = f"brdfs/{copies[source]}"
+    return truth, copies
+
+
 def capture(scene_path: str | Path, rig: VirtualRig, out_dir: str | Path, seed: int = 0,
             noise: bool = True, rotation_deg: float = 0.0, threads: int = 1) -> Path:
     """Render a virtual capture of the scene into ``out_dir`` (a capture folder).
@@ -93,7 +170,10 @@ def capture(scene_path: str | Path, rig: VirtualRig, out_dir: str | Path, seed: 
     Writes ``frames/NNNN_eK.exr`` (one per exposure, half floats as a camera
     would deliver), ``truth/radiance_NNNN.exr`` (the true radiance I, half
     floats: relative precision 5e-4, ample for the accuracy records),
-    ``truth/scene.yaml`` and ``manifest.json``. The folder is staged and moved
+    ``truth/scene.yaml`` (its measured BRDF files copied to ``truth/brdfs/``),
+    ``truth/calibration.json`` (with the rig's ``calibration_error``: the true
+    LED intensities, positions and camera pose; the manifest keeps the nominal
+    ones) and ``manifest.json``. The folder is staged and moved
     into place only when complete. ``rotation_deg``: the sample turned on the
     rig by this angle (added to the scene's own ``rotation_deg``; the truth
     scene records the total). Frames are rendered and written on ``threads``
@@ -104,14 +184,16 @@ def capture(scene_path: str | Path, rig: VirtualRig, out_dir: str | Path, seed: 
     scene_dict["rotation_deg"] = float(scene_dict.get("rotation_deg", 0.0)) + float(rotation_deg)
     scene = Scene.from_dict(scene_dict, scene_path)
     rng = np.random.default_rng(seed)
-    camera = rig.camera(scene.size[0])
+    camera = rig.camera(scene.size[0])                  # the calibration: what the manifest records
     intensities = rig.led_intensities(rng)
+    error = rig.calibration_error()
+    seen_by = camera if error is None else error.camera(camera)   # the camera's true pose
     exposure, sensor_noise = rig.desc["exposure"], rig.desc["noise"]
     read_sigma, shot_gain = (sensor_noise["read_sigma"], sensor_noise["shot_gain"]) if noise else (0.0, 0.0)
     supersample = rig.desc.get("supersample", 1)
 
     # What each (sub-)pixel sees on the plane; pixels off the sample see black velvet.
-    xy = camera.pixel_plane_points(supersample)
+    xy = seen_by.pixel_plane_points(supersample)
     on_sample = scene.on_sample(xy)
     points = np.concatenate([xy[on_sample], np.zeros((on_sample.sum(), 1))], axis=-1)
     maps = scene.parameters(xy[on_sample])
@@ -120,7 +202,14 @@ def capture(scene_path: str | Path, rig: VirtualRig, out_dir: str | Path, seed: 
     with atomic_dir(out_dir) as staging:
         (staging / "frames").mkdir()
         (staging / "truth").mkdir()
-        (staging / "truth" / "scene.yaml").write_text(yaml.safe_dump(scene_dict, sort_keys=False))
+        truth_scene, brdf_files = _portable_truth(scene_dict, scene)
+        (staging / "truth" / "scene.yaml").write_text(yaml.safe_dump(truth_scene, sort_keys=False))
+        if brdf_files:
+            (staging / "truth" / "brdfs").mkdir()
+            for source, name in brdf_files.items():
+                shutil.copyfile(source, staging / "truth" / "brdfs" / name)
+        if error is not None:
+            write_json(staging / "truth" / "calibration.json", error.record(rig.desc["calibration_error"], camera))
         controller = VirtualController(n_leds=rig.desc["leds"]["count"], max_steps=rig.max_steps,
                                        steps_per_mm=rig.desc["carriage"]["steps_per_mm"])
 
@@ -128,7 +217,11 @@ def capture(scene_path: str | Path, rig: VirtualRig, out_dir: str | Path, seed: 
             """Render frame q lit from ``light``, expose its bracket, write its files; its manifest entry."""
             q, light, led, steps = job
             rng_frame = np.random.default_rng([seed, q])   # one stream per frame: the same noise on any thread
-            true_radiance = _render_frame(points, maps, on_sample, camera, light, intensities[led], supersample)
+            if error is None:
+                true_radiance = _render_frame(points, maps, on_sample, camera, light, intensities[led], supersample)
+            else:                                          # the rig as it is, not as calibrated
+                true_radiance = _render_frame(points, maps, on_sample, seen_by, light + error.led_offset[led],
+                                              intensities[led] * error.intensity_factor[led], supersample)
             exposures = []
             for e, t in enumerate(exposure["times"]):
                 value = expose(true_radiance, t, exposure["saturation"], read_sigma, shot_gain, rng_frame)
@@ -166,7 +259,8 @@ def capture(scene_path: str | Path, rig: VirtualRig, out_dir: str | Path, seed: 
             "saturation": exposure["saturation"],
             "noise": {"read_sigma": read_sigma, "shot_gain": shot_gain},
             "frames": frames,
-            "truth": {"scene": "truth/scene.yaml"},
+            "truth": {"scene": "truth/scene.yaml",
+                      **({} if error is None else {"calibration": "truth/calibration.json"})},
             "rig": {"name": rig.desc["name"], "firmware": info.firmware, "seed": seed, "noise": noise},
         })
     return out_dir

@@ -55,9 +55,12 @@ def run(geometry: str | Path, kd_out: str | Path, specular_out: str | Path, vali
                "threshold": threshold, "points_without_diffuse_estimate": dark}
     truth = capture.truth()
     if truth is not None:
-        select = capture.visible[:, None] & (truth.kd > 0)
-        metrics["kd_median_rel_error"] = float(np.median(np.abs(kd - truth.kd)[select] / truth.kd[select]))
-        log.info("kd median relative error %.4f", metrics["kd_median_rel_error"])
+        # Points whose true BRDF is not eq. 6 (measured, coated, ...) have no true kd to score against.
+        select = (capture.visible & truth.analytic)[:, None] & (truth.kd > 0)
+        metrics["kd_median_rel_error"] = (float(np.median(np.abs(kd - truth.kd)[select] / truth.kd[select]))
+                                          if select.any() else None)
+        if select.any():
+            log.info("kd median relative error %.4f", metrics["kd_median_rel_error"])
     write_json(metrics_out, metrics)
 
 
