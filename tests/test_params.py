@@ -261,3 +261,184 @@ def test_negative_eq18_weights_give_a_valid_model(tmp_path):
     assert model.area_at(index, k).min() > 0.05
     rho = model.eval_index(index, k, k[::-1])
     assert np.isfinite(rho).all() and (rho >= 0).all() and rho.max() < 100
+
+
+# --- eta's profile-likelihood interval (issue 13 item 6) ---------------------------------
+
+def ratio_samples(n, c_range, c_ref=0.6, eta=1.8, noise=0.05, seed=0):
+    """Synthetic eq. 19-20 data in the pipeline's form: F_m = F(c, eta) / F(c_ref, eta) x (1 + noise N(0, 1))."""
+    rng = np.random.default_rng(seed)
+    c = rng.uniform(*c_range, n)
+    cr = np.full(n, c_ref)
+    f_m = microfacet.fresnel(c, eta) / microfacet.fresnel(cr, eta) * (1 + noise * rng.standard_normal(n))
+    return f_m, c, cr
+
+
+def test_eta_rss_is_eq19s_sum_of_squares():
+    f_m, c, cr = ratio_samples(50, (0.3, 0.5))
+    w = np.linspace(0.5, 1.5, 50)
+    for eta in (1.3, 2.2):
+        expected = np.sum(w * (microfacet.fresnel(c, eta) / microfacet.fresnel(cr, eta) - f_m) ** 2)
+        assert params.eta_rss([eta], f_m, c, cr, w)[0] == pytest.approx(expected, rel=1e-12)
+    assert params.eta_rss([1.8], microfacet.fresnel(c, 1.8), c)[0] == pytest.approx(0.0, abs=1e-20)
+
+
+def test_eta_interval_covers_the_truth_and_shrinks_with_more_and_grazier_samples():
+    """5 % multiplicative noise on F_m, truth 1.8: the 95 % interval covers it (in 95 % of draws), holds the LM fit,
+    and narrows with 10 x the samples and with grazier light (the F ratio varies more with eta there)."""
+    base = params.eta_profile(*ratio_samples(200, (0.35, 0.47)))
+    more = params.eta_profile(*ratio_samples(2000, (0.35, 0.47)))
+    grazier = params.eta_profile(*ratio_samples(200, (0.10, 0.30)))
+    for iv in (base, more, grazier):
+        assert iv.lo < 1.8 < iv.hi and iv.identifiable(0.2) and not (iv.open_below or iv.open_above)
+        assert iv.threshold == pytest.approx(iv.rss_min * (1 + params.CHI2_1_95 / (iv.units - 1)))
+    assert more.width < 0.5 * base.width and grazier.width < 0.7 * base.width   # measured 0.007 / 0.012 / 0.024
+    fit = params.fit_eta(*ratio_samples(200, (0.35, 0.47)))
+    assert base.lo < fit.eta < base.hi and base.best == pytest.approx(fit.eta, abs=1e-4)
+    assert base.width == pytest.approx(2 * 1.96 * fit.std, rel=0.15)      # near-quadratic profile: the Wald interval
+    # the ends lie on the threshold
+    f_m, c, cr = ratio_samples(200, (0.35, 0.47))
+    np.testing.assert_allclose(params.eta_rss([base.lo, base.hi], f_m, c, cr), base.threshold, rtol=1e-5)
+    covered = [params.eta_profile(*ratio_samples(150, (0.3, 0.47), seed=s)).lo < 1.8 <
+               params.eta_profile(*ratio_samples(150, (0.3, 0.47), seed=s)).hi for s in range(40)]
+    assert np.mean(covered) >= 0.85                                                  # nominal 0.95
+
+
+def test_eta_interval_is_wide_where_the_data_do_not_constrain_eta():
+    """Near-normal samples only: F(c) / F(c_ref) hardly depends on eta (c ~ c_ref): wide, not identifiable."""
+    near_normal = params.eta_profile(*ratio_samples(200, (0.9, 1.0), c_ref=0.95))
+    assert near_normal.width > 1.0 and not near_normal.identifiable(0.2)           # measured [1.12, 4.0]
+    # groups: samples sharing an error are one unit; with one unit nothing is known
+    f_m, c, cr = ratio_samples(200, (0.35, 0.47))
+    one = params.eta_profile(f_m, c, cr, groups=np.zeros(200, int), bounds=(1.1, 3.0))
+    assert (one.lo, one.hi, one.units) == (1.1, 3.0, 1) and not one.identifiable(0.2) and one.reason
+    few = params.eta_profile(f_m, c, cr, groups=np.arange(200) % 3)
+    many = params.eta_profile(f_m, c, cr)
+    assert few.units == 3 and few.width > 2 * many.width                       # fewer independent units: wider
+    none = params.eta_profile(np.zeros(0), np.zeros(0))
+    assert (none.lo, none.hi) == params.ETA_BOUNDS and not none.identifiable(0.2)
+    nan = params.eta_profile(np.full(10, np.nan), np.full(10, 0.4))
+    assert nan.samples == 0 and not nan.identifiable(0.2)
+    # data that want eta beyond the bound: the interval reaches it, open, and is not identifiable however narrow
+    beyond = params.eta_profile(microfacet.fresnel(c, 6.0) / microfacet.fresnel(cr, 6.0), c, cr)
+    assert beyond.open_above and beyond.hi == params.ETA_BOUNDS[1] and not beyond.identifiable(10.0)
+
+
+def test_params_stage_records_eta_intervals_and_the_ndf_spread(tmp_path):
+    from facetsynth.fileio import read_exr
+    from facetsynth.svbrdf import SVBRDF
+    folder, truth = write_standin(tmp_path / "lobe")
+    metrics = run_params(folder, max_eta_interval=0.2)
+    model = SVBRDF.load(folder / "svbrdf")
+    assert metrics["max_eta_interval"] == 0.2 and "chi2_1(0.95)" in metrics["eta_interval_method"]
+    for record in metrics["per_material"]:
+        lo, hi = record["eta_interval"]
+        assert lo <= record["eta"] <= hi and record["eta_interval_width"] == pytest.approx(hi - lo)
+        assert record["eta_interval_units"] == 1 and not record["eta_identifiable"]   # one representative each
+    assert metrics["materials_eta_identifiable"] == 0
+    channels = read_exr(folder / "svbrdf" / "eta.exr")[0]
+    assert {"eta", "eta_fitted", "eta_lo", "eta_hi"} <= set(channels)
+    assert model.eta_lo.shape == model.eta.shape and (model.eta_lo <= model.eta_hi).all()
+    assert model.info["eta"]["intervals"]["per_material"][0]["interval"] == metrics["per_material"][0]["eta_interval"]
+    # two regions, each one frame and one representative with weight 1: every point has the region's NDF
+    assert set(metrics["ndf_spread"]) == {"low-eta", "high-eta"} and metrics["ndf_spread_skipped"] == {}
+    for v in metrics["ndf_spread"].values():
+        assert v["points"] == 32 and v["median"] == pytest.approx(0.0, abs=1e-12) and v["p90"] < 1e-12
+    assert metrics["ndf_spread_max_median"] == pytest.approx(0.0, abs=1e-12)
+    assert "nan" not in (folder / "metrics.json").read_text().lower()
+    assert "infinity" not in (folder / "metrics.json").read_text().lower()
+
+
+def test_params_stage_interval_unit_sets_n_of_the_test(tmp_path):
+    """The standin's grazing samples are noise-free eq. 6 data: counted per sample the interval is narrow,
+    covers the truth, and eta is identifiable (the unit changes n of the test, nothing else)."""
+    from facetsynth.stages import params as stage
+    from facetsynth.svbrdf import SVBRDF
+    folder, truth = write_standin(tmp_path / "lobe")
+    run_params(folder)
+    model = SVBRDF.load(folder / "svbrdf")
+    w18 = np.load(folder / "weights.npy").astype(float)
+    samples = {"point": np.repeat(np.arange(64), 20), "f_m": np.ones(64 * 20), "c": np.full(64 * 20, 0.4),
+               "c_ref": None}
+    c = np.random.default_rng(3).uniform(0.1, 0.45, samples["c"].size)
+    eta_true = np.where(truth.region[samples["point"]] == 0, 1.35, 2.6)
+    samples.update(c=c, f_m=microfacet.fresnel(c, eta_true) * (1 + 0.02 * np.random.default_rng(4).standard_normal(c.size)))
+    material = np.array([0, 1])
+    for unit, identifiable in (("sample", True), ("point", True), ("representative", False)):
+        eta, fitted, records, eta_rep, interval_rep = stage.fit_eta(model, w18, samples, material, (1.05, 4.0), 1.5,
+                                                                    8, 0.15, 0.1, 0.2, interval_unit=unit)
+        for r, true_eta in zip(records, (1.35, 2.6)):
+            assert r["eta_interval"][0] < true_eta < r["eta_interval"][1], unit
+            assert r["eta_identifiable"] == identifiable, unit
+        np.testing.assert_allclose(interval_rep[:, 0], [r["eta_interval"][0] for r in records])
+
+
+def test_params_stage_keeps_eta_where_it_is_not_identifiable_and_says_so(tmp_path):
+    """No grazing light: the default is kept as before, and the interval (the whole range) tells the user."""
+    from facetsynth.svbrdf import SVBRDF
+    folder, truth = write_standin(tmp_path / "nograzing")
+    metrics = run_params(folder, grazing_deg=89.9, eta_default=1.45, eta_min=1.1, eta_max=3.5)
+    model = SVBRDF.load(folder / "svbrdf")
+    np.testing.assert_allclose(model.eta, 1.45, rtol=1e-7)
+    for r in metrics["per_material"]:
+        assert r["eta_interval"] == [1.1, 3.5] and not r["eta_identifiable"] and r["eta_interval_reason"]
+    np.testing.assert_allclose(model.eta_lo, 1.1, rtol=1e-7)
+    np.testing.assert_allclose(model.eta_hi, 3.5, rtol=1e-7)
+
+
+def test_ndf_spread_skips_turning_frames_and_scores_a_constant_one():
+    """A polar frame is one material at many rotations (skipped, said so); a constant frame is scored, and
+    a point whose NDF differs from the rest shows in the spread."""
+    from facetsynth.scene import Scene
+    from facetsynth.stages import params as stage
+    scene = Scene.from_dict({"name": "two", "size": [0.1, 0.1], "regions": [
+        {"name": "turned", "where": {"rect": {"x": [-0.05, 0.0], "y": [-0.05, 0.05]}}, "kd": [0.2, 0.2, 0.2],
+         "ks": [0.5, 0.5, 0.5], "eta": 1.5, "alpha": [0.1, 0.3], "frame": {"polar": [0.0, 0.0]}},
+        {"name": "straight", "where": {"rect": {"x": [0.0, 0.05], "y": [-0.05, 0.05]}}, "kd": [0.2, 0.2, 0.2],
+         "ks": [0.5, 0.5, 0.5], "eta": 1.5, "alpha": [0.2, 0.2], "frame": {"angle_deg": 10}}]})
+    plane = PlaneGrid(0.1, 0.1, 8, 8)
+    maps = scene.parameters(plane.points3d().reshape(-1, 3)[:, :2])
+    model = tabulate_truth(maps, DirectionGrid(16, 64), plane)
+    visible = np.ones(64, bool)
+    spread, skipped = stage.ndf_spread(model, maps, ["turned", "straight"], visible)
+    assert set(spread) == {"straight"} and "turns" in skipped["turned"]
+    assert spread["straight"] == {"points": 32, "median": 0.0, "p90": 0.0}
+    # one point of the straight region given the turned region's first NDF: the spread sees it
+    straight = np.flatnonzero(maps.region == 1)
+    odd = model.neighbours.copy()
+    odd[straight[0]] = model.neighbours[np.flatnonzero(maps.region == 0)[0]]
+    changed = type(model)(**{**{f: getattr(model, f) for f in ("plane", "grid", "kd", "ks", "eta", "ndf", "area",
+                                                               "weights")}, "neighbours": odd})
+    spread, _ = stage.ndf_spread(changed, maps, ["turned", "straight"], visible, max_points=8)
+    assert spread["straight"]["points"] == 8 and spread["straight"]["p90"] > 0.1
+    # only points whose truth is analytic eq. 6 (MaterialMaps.analytic)
+    import dataclasses
+    marked = dataclasses.replace(maps, analytic=maps.region == 0)
+    spread, skipped = stage.ndf_spread(model, marked, ["turned", "straight"], visible)
+    assert spread == {} and "no visible point" in skipped["straight"]
+
+
+def test_svbrdf_folder_without_eta_interval_still_loads(tmp_path):
+    """Backward compatibility: a folder written before the interval channels loads with eta_lo = eta_hi = None;
+    one written with them round-trips."""
+    from facetsynth.fileio import read_exr
+    from facetsynth.svbrdf import SVBRDF
+    plane = PlaneGrid(0.1, 0.1, 2, 2)
+    model = tabulate_truth(MaterialMaps(kd=np.full((4, 3), 0.1), ks=np.full((4, 3), 0.5), eta=np.full(4, 1.5),
+                                        alpha_u=np.full(4, 0.2), alpha_v=np.full(4, 0.3), phi_frame=np.zeros(4),
+                                        region=np.zeros(4, int)), DirectionGrid(8, 32), plane)
+    model.save(tmp_path / "old")
+    assert set(read_exr(tmp_path / "old" / "eta.exr")[0]) == {"eta", "eta_fitted"}
+    old = SVBRDF.load(tmp_path / "old")
+    assert old.eta_lo is None and old.eta_hi is None
+    model.eta_lo, model.eta_hi = np.full(4, 1.4), np.full(4, 1.7)
+    model.save(tmp_path / "new")
+    new = SVBRDF.load(tmp_path / "new")
+    np.testing.assert_allclose(new.eta_lo, 1.4, rtol=1e-7)
+    np.testing.assert_allclose(new.eta_hi, 1.7, rtol=1e-7)
+    x = np.array([[0.01, 0.01, 0.0]])
+    wi, wo = np.array([[0.3, 0.0, 0.954]]), np.array([[-0.3, 0.1, 0.949]])
+    np.testing.assert_array_equal(old.eval(x, wi, wo), new.eval(x, wi, wo))
+    with pytest.raises(ValueError):
+        SVBRDF(**{**{f: getattr(model, f) for f in ("plane", "grid", "kd", "ks", "eta", "ndf", "area", "neighbours",
+                                                     "weights")}, "eta_lo": np.ones(3)})

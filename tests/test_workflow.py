@@ -99,6 +99,26 @@ def test_noise_free_demo_predicts_held_out_views_and_fits_stencils(demo_run):
     validate = metrics(demo_run, "demo", "validate")
     assert validate["heldout_psnr_db"] >= 30.0
     assert validate["heldout_psnr_db"] > validate["baseline_ward_psnr_db"]
+    # issue 13 item 4: scores that do not hide faults behind the view's peak, for both models, per view and mean
+    trusted = ("rel_l2", "specular_rel_l2", "frame_psnr_median_db", "frame_psnr_worst_db")
+    for record in [validate] + list(validate["views"].values()):
+        for key in trusted:
+            for prefix in ("heldout_", "baseline_ward_"):
+                assert record[prefix + key] is not None and np.isfinite(record[prefix + key]), prefix + key
+    for view in validate["views"].values():
+        assert view["specular_pixels"] > 0.9 * view["sample_pixels"]      # the demo's truth is analytic everywhere
+        # measured 2026-12-01: paper / theta30 0.119 / 0.101 (Ward 0.411 / 0.694); 0.144 / 0.129 with the same
+        # day's other clustering: 20 % above the larger
+        assert view["heldout_rel_l2"] <= 0.175
+        assert view["heldout_rel_l2"] < view["baseline_ward_rel_l2"]
+    assert validate["heldout_rel_l2"] <= 0.165                               # measured 0.110 (0.136)
+    params = metrics(demo_run, "demo", "params")
+    assert "blue-paint" in params["ndf_spread"] and "turned-copper" in params["ndf_spread_skipped"]
+    assert np.isfinite(params["ndf_spread_max_median"])
+    for record in params["per_material"]:
+        lo, hi = record["eta_interval"]
+        assert 1.05 <= lo <= hi <= 4.0 and record["eta_identifiable"] == (hi - lo < 0.2 and not any(
+            record["eta_interval_open"]))
     stencil = metrics(demo_run, "demo", "stencil_fit")
     assert stencil["ground_truth"] and stencil["clusters"] == len(np.load(demo_run / "results/demo/cluster/representatives.npy"))
     assert stencil["mode_count_accuracy"] >= 0.85          # measured 0.93 noise-free, 1.0 default noise: docs/stencil.md

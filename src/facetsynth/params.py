@@ -159,3 +159,127 @@ def fit_eta(f_measured: np.ndarray, c: np.ndarray, c_ref: np.ndarray | None = No
     if not std <= max_std:
         return EtaFit(default, False, std, n, rms, f"standard error {std:.3f} > {max_std}")
     return EtaFit(eta, True, std, n, rms)
+
+
+# --- eta's profile-likelihood interval (issue 13 item 6) ----------------------------------
+
+CHI2_1_95 = 3.841458820694124   # chi-square quantile, 1 degree of freedom, 0.95 (scipy.stats.chi2.ppf(0.95, 1))
+
+
+@dataclass(frozen=True)
+class EtaInterval:
+    """The profile-likelihood interval of eta on eqs. 19-20 (:func:`eta_profile`)."""
+
+    lo: float
+    hi: float
+    best: float            # eta minimising the residual sum of squares over [eta_min, eta_max]
+    rss_min: float         # RSS at ``best``
+    threshold: float       # RSS(eta) <= threshold inside the interval
+    samples: int           # residuals in the RSS
+    units: int             # n of the threshold: independent units (samples, or the groups given)
+    open_below: bool       # the interval reaches eta_min (the data allow every eta down to the bound)
+    open_above: bool       # ... eta_max
+    reason: str = ""
+
+    @property
+    def width(self) -> float:
+        return self.hi - self.lo
+
+    def identifiable(self, max_width: float) -> bool:
+        """True only when the interval is narrower than ``max_width`` and closed inside the bounds."""
+        return bool(self.width < max_width and not self.open_below and not self.open_above)
+
+
+def eta_rss(eta: np.ndarray, f_measured: np.ndarray, c: np.ndarray, c_ref: np.ndarray | None = None,
+            weight: np.ndarray | None = None, block: int = 16) -> np.ndarray:
+    """Eq. 19's residual sum of squares RSS(eta) = sum_j w_j (F_c(c_j, eta) / F_c(c_ref_j, eta) - F_m,j)^2.
+
+    ``eta`` (G,) values; the samples (N,) as :func:`fit_eta` takes them
+    (``c_ref`` None: eq. 19 as printed). Vectorised over ``block`` values of
+    eta at a time (memory G x N). Eq. 19 as used here has no free parameter
+    besides eta (ks and D come from sec. 5.4 and eq. 20, not from this fit), so
+    this is the profile of eta: nothing to optimise out at each eta.
+    """
+    eta = np.atleast_1d(np.asarray(eta, float))
+    f_m = np.asarray(f_measured, float)[None]
+    c = np.asarray(c, float)[None]
+    cr = None if c_ref is None else np.asarray(c_ref, float)[None]
+    w = np.ones(c.shape) if weight is None else np.asarray(weight, float)[None]
+    out = np.empty(eta.shape)
+    for a in range(0, eta.size, block):
+        e = eta[a:a + block, None]
+        out[a:a + block] = np.sum(w * (_model(e, c, cr) - f_m) ** 2, axis=1)
+    return out
+
+
+def eta_profile(f_measured: np.ndarray, c: np.ndarray, c_ref: np.ndarray | None = None,
+                weight: np.ndarray | None = None, bounds: tuple[float, float] = ETA_BOUNDS,
+                groups: np.ndarray | None = None, chi2: float = CHI2_1_95, n_grid: int = 241) -> EtaInterval:
+    """The 95 % profile-likelihood interval of eta from eqs. 19-20.
+
+    RSS(eta) (:func:`eta_rss`) is evaluated on ``n_grid`` values spanning
+    ``bounds`` and minimised (grid, then a bounded scalar search around the
+    best grid value). With Gaussian residuals of unknown variance, estimated at
+    the optimum as RSS_min / (n - p), the likelihood-ratio test at level 0.95
+    keeps every eta with
+
+        RSS(eta) <= RSS_min (1 + chi2_1(0.95) / (n - p)),   p = 1 (eta: eq. 19's only free parameter).
+
+    n is the number of independent units: the samples (``groups`` None), or
+    the number of distinct ``groups`` labels (N,) when samples share errors
+    (the samples of one representative NDF share its error at the grazing
+    half vectors: the residuals' scale is then set by the groups, and n = the
+    groups' count is the design-effect correction of the test). The interval is
+    the hull of the accepted set (conservative if RSS has several minima), its
+    ends found where RSS crosses the threshold (Brent's method between grid
+    values); an end that reaches a bound is marked open. With n - p < 1 or no
+    usable sample the interval is the whole of ``bounds`` (nothing known).
+    """
+    from scipy.optimize import brentq, minimize_scalar
+
+    lo_b, hi_b = float(bounds[0]), float(bounds[1])
+    f_m = np.asarray(f_measured, float).ravel()
+    c = np.asarray(c, float).ravel()
+    cr = None if c_ref is None else np.broadcast_to(np.asarray(c_ref, float).ravel(), c.shape)
+    w = np.ones_like(c) if weight is None else np.broadcast_to(np.asarray(weight, float).ravel(), c.shape)
+    ok = np.isfinite(f_m) & np.isfinite(c) & (w > 0)
+    if cr is not None:
+        ok &= np.isfinite(cr)
+    n = int(ok.sum())
+    units = n if groups is None else int(np.unique(np.asarray(groups).ravel()[ok]).size)
+    if units - 1 < 1:
+        return EtaInterval(lo_b, hi_b, float("nan"), float("nan"), float("nan"), n, units, True, True,
+                           f"{units} independent unit(s): eta not constrained")
+    f_m, c, w = f_m[ok], c[ok], w[ok]
+    cr = None if cr is None else cr[ok]
+
+    def rss(e):
+        return float(eta_rss(np.array([e]), f_m, c, cr, w)[0])
+
+    grid = np.linspace(lo_b, hi_b, n_grid)
+    profile = eta_rss(grid, f_m, c, cr, w)
+    i = int(np.argmin(profile))
+    a, b = grid[max(i - 1, 0)], grid[min(i + 1, n_grid - 1)]
+    res = minimize_scalar(rss, bounds=(a, b), method="bounded", options={"xatol": 1e-6 * (hi_b - lo_b)})
+    best, rss_min = (float(res.x), float(res.fun)) if res.fun < profile[i] else (float(grid[i]), float(profile[i]))
+    threshold = rss_min * (1.0 + chi2 / (units - 1))
+    accepted = np.flatnonzero(profile <= threshold)
+    inner_lo = min(best, grid[accepted].min()) if accepted.size else best
+    inner_hi = max(best, grid[accepted].max()) if accepted.size else best
+
+    def end(inner, outer_candidates):
+        """The crossing between the inner point and the nearest grid value outside (None: reaches the bound)."""
+        if outer_candidates.size == 0:
+            return None
+        outer = float(outer_candidates[-1] if outer_candidates[-1] < inner else outer_candidates[0])
+        f_out, f_in = rss(outer) - threshold, rss(inner) - threshold
+        if f_out <= 0:
+            return outer
+        if f_in >= 0:
+            return float(inner)
+        return float(brentq(lambda e: rss(e) - threshold, min(inner, outer), max(inner, outer), xtol=1e-7))
+
+    lo = end(inner_lo, grid[grid < inner_lo])
+    hi = end(inner_hi, grid[grid > inner_hi])
+    return EtaInterval(lo_b if lo is None else lo, hi_b if hi is None else hi, best, rss_min, threshold, n, units,
+                       lo is None, hi is None)

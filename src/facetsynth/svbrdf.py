@@ -17,7 +17,10 @@ sum to one like eq. 18's.
 Folder layout (``model.json`` describes it):
 
     kd.exr, ks.exr        R, G, B maps on the plane grid (rows, cols)
-    eta.exr               channels ``eta`` and ``eta_fitted`` (1 where grazing data constrained eta)
+    eta.exr               channels ``eta`` and ``eta_fitted`` (1 where grazing data constrained eta); when
+                          the params stage wrote them, ``eta_lo`` and ``eta_hi``: the 95 % profile-likelihood
+                          interval of eta of the point's material (eqs. 19-20; model.json ``eta``
+                          ``intervals`` per material). Folders without them load with None.
     ndf.npy               (R, n_theta, n_phi) float32 normalised representative NDFs on ``grid``
     projected_area.npy    (R, Ts, Fs) float32 eq. 5's A(k) of each representative on ``shadowing_grid``
     representatives.npy   (R,) int64 point index of each representative
@@ -89,11 +92,13 @@ class SVBRDF:
     eta_fitted: np.ndarray | None = None     # (P,) bool
     shadowing_grid: DirectionGrid = SHADOWING_GRID
     info: dict[str, Any] = field(default_factory=dict)
+    eta_lo: np.ndarray | None = None         # (P,) 95 % interval of eta (the point's material), if known
+    eta_hi: np.ndarray | None = None
 
     def __post_init__(self):
         p = self.plane.rows * self.plane.cols
-        for name, shape in (("kd", (p, 3)), ("ks", (p, 3)), ("eta", (p,))):
-            if getattr(self, name).shape != shape:
+        for name, shape in (("kd", (p, 3)), ("ks", (p, 3)), ("eta", (p,)), ("eta_lo", (p,)), ("eta_hi", (p,))):
+            if getattr(self, name) is not None and getattr(self, name).shape != shape:
                 raise ValueError(f"SVBRDF {name} has shape {getattr(self, name).shape}, expected {shape}")
         if self.neighbours.shape != self.weights.shape or self.neighbours.shape[0] != p:
             raise ValueError(f"SVBRDF neighbours {self.neighbours.shape} / weights {self.weights.shape}: "
@@ -134,13 +139,14 @@ class SVBRDF:
 
         eta_channels, _ = read_exr(path / "eta.exr")
         fitted = eta_channels.get("eta_fitted")
+        interval = {k: image("eta.exr", k) if k in eta_channels else None for k in ("eta_lo", "eta_hi")}
         try:
             return cls(plane=plane, grid=grid, kd=image("kd.exr", "RGB"), ks=image("ks.exr", "RGB"),
                        eta=image("eta.exr", "eta"), ndf=tensor("ndf.npy"), area=tensor("projected_area.npy"),
                        neighbours=tensor("neighbours.npy").astype(np.intp), weights=tensor("weights.npy"),
                        representatives=tensor("representatives.npy"),
                        eta_fitted=None if fitted is None else fitted.reshape(-1) > 0.5,
-                       shadowing_grid=sgrid, info=meta)
+                       shadowing_grid=sgrid, info=meta, eta_lo=interval["eta_lo"], eta_hi=interval["eta_hi"])
         except ValueError as exc:
             raise InputError(path, f"inconsistent SVBRDF folder ({exc})") from None
 
@@ -154,8 +160,10 @@ class SVBRDF:
         write_exr(path / "kd.exr", {"RGB": self.kd.reshape(rc + (3,))}, dict(header, quantity="kd"))
         write_exr(path / "ks.exr", {"RGB": self.ks.reshape(rc + (3,))}, dict(header, quantity="ks"))
         fitted = np.ones(rc) if self.eta_fitted is None else self.eta_fitted.reshape(rc).astype(float)
-        write_exr(path / "eta.exr", {"eta": self.eta.reshape(rc), "eta_fitted": fitted},
-                  dict(header, quantity="eta (relative refraction index, eq. 3)"))
+        eta_maps = {"eta": self.eta.reshape(rc), "eta_fitted": fitted}
+        if self.eta_lo is not None and self.eta_hi is not None:
+            eta_maps.update(eta_lo=self.eta_lo.reshape(rc), eta_hi=self.eta_hi.reshape(rc))
+        write_exr(path / "eta.exr", eta_maps, dict(header, quantity="eta (relative refraction index, eq. 3)"))
         write_npy(path / "ndf.npy", self.ndf.astype(np.float32))
         write_npy(path / "projected_area.npy", self.area.astype(np.float32))
         reps = self.representatives if self.representatives is not None else np.arange(self.ndf.shape[0])
@@ -209,6 +217,21 @@ class SVBRDF:
     def ndf_at(self, index: np.ndarray, h: np.ndarray) -> np.ndarray:
         """The per-point normalised NDF D(x, h) (eq. 18 mixture, clipped at 0) at points (N,), half vectors (N, 3)."""
         return np.maximum(self.mixture(self._ndf_flat, self.grid, index, h), 0.0)
+
+    def point_ndf(self, index: np.ndarray) -> np.ndarray:
+        """The per-point normalised NDFs (N, T, F) on the model's grid at points ``index`` (N,).
+
+        Eq. 18's mixture of the representative tables, clipped at 0: what
+        :meth:`ndf_at` gives at the cell centres (no interpolation).
+        """
+        index = np.asarray(index, np.intp).ravel()
+        out = np.zeros((index.size, self._ndf_flat.shape[1]))
+        for k in range(self.neighbours.shape[1]):
+            w = self.weights[index, k]
+            use = w != 0
+            if use.any():
+                out[use] += w[use, None] * self._ndf_flat[self.neighbours[index[use], k]]
+        return np.maximum(out, 0.0).reshape((index.size,) + self.grid.shape)
 
     def area_at(self, index: np.ndarray, k: np.ndarray) -> np.ndarray:
         """A(x, k) of eq. 5 (the mixture's projected area, floored at 1e-6) at points (N,), directions (N, 3)."""

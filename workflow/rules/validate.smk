@@ -69,6 +69,8 @@ rule validate:
         params_metrics="results/{sample}/params/metrics.json",
         ward="results/{sample}/baseline/ward",
         heldout=expand("results/{{sample}}/validate/heldout/{view}", view=list(HELDOUT_VIEWS)),
+        # the held-out truth's rig: its supersampling renders the truth's diffuse term for the specular score
+        rig=lambda wc: virtual_scene(wc)["rig"],
     output:
         metrics="results/{sample}/validate/metrics.json",
         images=directory("results/{sample}/validate/images"),

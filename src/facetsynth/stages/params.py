@@ -21,8 +21,10 @@ from ..cluster import material_groups
 from ..errors import InputError
 from ..fileio import atomic_dir, read_exr, read_json, read_npy, write_json
 from ..grid import DirectionGrid
+from ..metrics import finite_or_none, spread_about_mean
 from ..microfacet import fresnel, half_vector
 from ..render import light_geometry
+from ..scene import MaterialMaps, Scene
 from ..svbrdf import SVBRDF
 from ..synthesis import SUPPORT
 from .common import RectifiedCapture, tiles
@@ -129,8 +131,20 @@ def grazing_fresnel(model: SVBRDF, ks_pt: np.ndarray, capture: RectifiedCapture,
     return {k: (np.concatenate(v) if v else np.zeros(0)) for k, v in out.items()}
 
 
+# The independent units of eta's interval (fit.eta_profile's n): the samples of one representative share its
+# NDF's error at the grazing half vectors (docs/decisions.md "Metrics a user trusts; eta's interval").
+INTERVAL_UNIT = "representative"
+INTERVAL_METHOD = ("profile likelihood of eq. 19 (linear residuals, as fitted): RSS(eta) on 241 values of "
+                   "[eta_min, eta_max] (eta is eq. 19's only free parameter: nothing else to profile out), "
+                   "95 %: RSS(eta) <= RSS_min (1 + chi2_1(0.95) / (n - 1)), chi2_1(0.95) = 3.841, the residual "
+                   "variance estimated at the optimum; n = the material's representatives with grazing samples "
+                   "(a representative's samples share its NDF's error), ends by Brent's method; "
+                   "eta_identifiable: width < max_eta_interval and neither end at a bound")
+
+
 def fit_eta(model: SVBRDF, w18: np.ndarray, samples: dict[str, np.ndarray], material: np.ndarray, bounds,
-            default: float, min_samples: int, max_std: float, max_split_difference: float = 0.1) -> tuple:
+            default: float, min_samples: int, max_std: float, max_split_difference: float = 0.1,
+            max_eta_interval: float = 0.2, interval_unit: str = INTERVAL_UNIT) -> tuple:
     """eta per material by LM (eq. 19) on the grazing samples of its points (a point belongs to the
     material of its largest eq. 18 weight's representative); every representative of the material takes
     it, and each point the eq. 18 mixture of its representatives' eta.
@@ -139,21 +153,40 @@ def fit_eta(model: SVBRDF, w18: np.ndarray, samples: dict[str, np.ndarray], mate
     NDF's errors are shared by a point's samples; so the fit is repeated on
     the samples of the even and of the odd points, and eta counts as
     unconstrained (default kept) when the halves disagree by more than
-    ``max_split_difference``. Returns (eta (P,), fitted (P,) bool,
-    per-material records, eta per representative (R,)). ``samples["c_ref"]``
-    None: eq. 19 as printed (no Fresnel factor in the NDF, e.g. an analytic material).
+    ``max_split_difference``. Each material also gets the 95 % profile-likelihood
+    interval of eta (:func:`facetsynth.params.eta_profile`, its independent
+    units the material's representatives (``interval_unit`` "representative"),
+    points ("point") or samples ("sample")) and ``eta_identifiable`` (width <
+    ``max_eta_interval``, closed inside the bounds); eta itself is decided as
+    before, the interval only reports. Returns (eta (P,), fitted (P,) bool,
+    per-material records, eta per representative (R,), interval per
+    representative (R, 2)). ``samples["c_ref"]`` None: eq. 19 as printed (no
+    Fresnel factor in the NDF, e.g. an analytic material).
     """
     n_rep = model.ndf.shape[0]
     owner = model.neighbours[np.arange(model.n_points), np.argmax(w18, axis=1)]
     sample_material = material[owner[samples["point"]]] if samples["point"].size else np.zeros(0, np.intp)
     eta_rep, ok_rep, records = np.full(n_rep, default), np.zeros(n_rep, bool), []
+    interval_rep = np.tile(np.asarray(bounds, float), (n_rep, 1))
     kw = dict(bounds=bounds, default=default, min_samples=min_samples, max_std=max_std)
+    unit_of_sample = {"representative": owner[samples["point"]] if samples["point"].size else None,
+                      "point": samples["point"], "sample": None}[interval_unit]
     for m in np.unique(material):
         sel = np.flatnonzero(sample_material == m)
         c_ref = None if samples["c_ref"] is None else samples["c_ref"][sel]
         res = fit.fit_eta(samples["f_m"][sel], samples["c"][sel], c_ref, **kw)
+        interval = fit.eta_profile(samples["f_m"][sel], samples["c"][sel], c_ref, bounds=bounds,
+                                   groups=None if unit_of_sample is None else unit_of_sample[sel])
         record = {"material": int(m), "representatives": np.flatnonzero(material == m).tolist(), "eta": res.eta,
-                  "constrained": res.constrained, "std": res.std, "samples": res.samples, "reason": res.reason}
+                  "constrained": res.constrained, "std": finite_or_none(res.std), "samples": res.samples,
+                  "reason": res.reason,
+                  "eta_interval": [interval.lo, interval.hi], "eta_interval_width": interval.width,
+                  "eta_identifiable": interval.identifiable(max_eta_interval),
+                  "eta_interval_open": [interval.open_below, interval.open_above],
+                  "eta_interval_units": interval.units, "eta_profile_best": finite_or_none(interval.best)}
+        if interval.reason:
+            record["eta_interval_reason"] = interval.reason
+        interval_rep[material == m] = interval.lo, interval.hi
         if res.constrained:
             halves = []
             for parity in (0, 1):
@@ -161,19 +194,62 @@ def fit_eta(model: SVBRDF, w18: np.ndarray, samples: dict[str, np.ndarray], mate
                 half = fit.fit_eta(samples["f_m"][sel][part], samples["c"][sel][part],
                                    None if c_ref is None else c_ref[part], **kw)
                 halves.append(half.eta if half.constrained else np.nan)
-            record["eta_halves"] = halves
+            record["eta_halves"] = [finite_or_none(h) for h in halves]
             if not np.all(np.isfinite(halves)) or abs(halves[0] - halves[1]) > max_split_difference:
                 res = fit.EtaFit(default, False, res.std, res.samples, res.rms,
                                  f"even/odd points disagree: eta {halves[0]:.3f} / {halves[1]:.3f}")
                 record.update(eta=default, constrained=False, fitted_eta=record["eta"], reason=res.reason)
         eta_rep[material == m], ok_rep[material == m] = res.eta, res.constrained
+        log.info("material %d: eta %.3f (%s), 95 %% interval [%.3f, %.3f] (%d independent units), %s",
+                 m, res.eta, "fitted" if res.constrained else "default: " + res.reason, interval.lo, interval.hi,
+                 interval.units, "identifiable" if record["eta_identifiable"] else "NOT identifiable")
         records.append(record)
     total = w18.sum(axis=1)
     eta = np.where(np.abs(total) > 1e-6, np.sum(w18 * eta_rep[model.neighbours], axis=1) / np.where(
         np.abs(total) > 1e-6, total, 1.0), default)                    # points without weights keep the default
     eta = np.clip(eta, *bounds)
     fitted = ok_rep[owner]
-    return eta, fitted, records, eta_rep
+    return eta, fitted, records, eta_rep, interval_rep
+
+
+def ndf_spread(model: SVBRDF, truth: MaterialMaps, names: list[str], visible: np.ndarray,
+               max_points: int = 2000) -> tuple[dict, dict]:
+    """The spread of the fitted per-point NDFs within each homogeneous truth region.
+
+    For every truth region (``truth.region`` >= 0; only points whose truth is
+    analytic eq. 6, ``MaterialMaps.analytic``, where the maps have it) whose frame
+    azimuth is the same at all its visible points (within 1e-6 rad: one NDF
+    everywhere), up to ``max_points`` points (evenly strided) get their final
+    normalised eq. 18 NDF on the model's grid (:meth:`SVBRDF.point_ndf`), and
+    each its relative L2 about the points' mean NDF, solid-angle weighted over
+    the whole hemisphere grid (:func:`facetsynth.metrics.spread_about_mean`).
+    Returns ({name: {"points", "median", "p90"}}, {name: why skipped}); a
+    region whose frame turns (a polar frame: one material at many rotations,
+    its NDFs should differ) is skipped and said so.
+    """
+    analytic = getattr(truth, "analytic", None)
+    spread, skipped = {}, {}
+    for r in np.unique(truth.region[truth.region >= 0]):
+        name = names[r] if r < len(names) else f"region{int(r)}"
+        sel = visible & (truth.region == r)
+        if analytic is not None:
+            sel &= np.asarray(analytic, bool).reshape(sel.shape)
+        index = np.flatnonzero(sel)
+        if index.size == 0:
+            skipped[name] = "no visible point with analytic truth"
+            continue
+        turn = np.angle(np.exp(1j * (truth.phi_frame[index] - truth.phi_frame[index[0]])))
+        if np.abs(turn).max() > 1e-6:
+            skipped[name] = (f"frame turns across the sample (up to {np.degrees(np.abs(turn).max()):.0f} deg from "
+                             "its first point): one material at many rotations, its NDFs differ by design")
+            continue
+        index = index[:: int(np.ceil(index.size / max_points))]
+        err = spread_about_mean(model.point_ndf(index), model.grid.solid_angles)
+        err = err[np.isfinite(err)]
+        spread[name] = {"points": int(err.size),
+                        "median": finite_or_none(np.median(err)) if err.size else None,
+                        "p90": finite_or_none(np.quantile(err, 0.9)) if err.size else None}
+    return spread, skipped
 
 
 def run(geometry: str | Path, kd_path: str | Path, specular: str | Path, valid: str | Path, colour: str | Path,
@@ -183,7 +259,7 @@ def run(geometry: str | Path, kd_path: str | Path, specular: str | Path, valid: 
         eta_min: float = fit.ETA_BOUNDS[0], eta_max: float = fit.ETA_BOUNDS[1], eta_default: float = fit.ETA_DEFAULT,
         min_samples: int = 8,
         max_std: float = 0.15, min_ndf_fraction: float = 0.05, max_split_difference: float = 0.1,
-        material_tolerance: float = 0.25) -> None:
+        material_tolerance: float = 0.25, max_eta_interval: float = 0.2) -> None:
     """Fit the remaining parameters and write the SVBRDF folder ``svbrdf_out`` and the metrics.
 
     Eq. 11 assumes F = 1, so the synthesized NDFs carry a Fresnel factor whose
@@ -216,15 +292,25 @@ def run(geometry: str | Path, kd_path: str | Path, specular: str | Path, valid: 
     log.info("%d grazing samples (lights beyond %.0f deg) in the lobes", samples["f_m"].size, grazing_deg)
     material = material_groups(kd[reps.astype(np.intp)], material_tolerance)
     log.info("%d materials by kd (tolerance %.2f)", material.max() + 1, material_tolerance)
-    eta, fitted, records, eta_rep = fit_eta(carrying, w18, samples, material, (eta_min, eta_max), eta_default,
-                                            min_samples, max_std, max_split_difference)
+    eta, fitted, records, eta_rep, interval_rep = fit_eta(carrying, w18, samples, material, (eta_min, eta_max),
+                                                          eta_default, min_samples, max_std, max_split_difference,
+                                                          max_eta_interval)
     # the NDFs without the Fresnel factor they carry: D = D_c / F(cosine, eta) (eqs. 3, 11)
     free = table / np.maximum(fresnel(cosine, eta_rep[:, None, None]), 1e-6)
     model, _, _ = build_model(free, grid, nb, w18, kd, col, capture, reps)
     model.eta, model.eta_fitted = eta, fitted & capture.visible
+    owner = nb[np.arange(n), np.argmax(w18, axis=1)]       # a point's interval: its material's (as eta_fitted)
+    model.eta_lo, model.eta_hi = interval_rep[owner, 0], interval_rep[owner, 1]
     model.info = {"eta": {"bounds": [eta_min, eta_max], "default": eta_default, "materials": material.tolist(),
                           "fitted_fraction": float(model.eta_fitted[capture.visible].mean()),
-                          "grazing_deg": grazing_deg},
+                          "grazing_deg": grazing_deg,
+                          "intervals": {"method": INTERVAL_METHOD, "max_width": max_eta_interval,
+                                        "per_material": [{"material": r["material"], "eta": r["eta"],
+                                                          "interval": r["eta_interval"],
+                                                          "identifiable": r["eta_identifiable"]}
+                                                         for r in records],
+                                        "maps": "eta.exr channels eta_lo, eta_hi: the interval of the "
+                                                "material of the point's largest eq. 18 weight"}},
                   "ks": "ks = integral (n.h) D (sec. 5.4) x specular colour, D free of the Fresnel factor"}
     with atomic_dir(svbrdf_out) as staging:       # the folder appears whole or not at all
         model.save(staging, provenance={"ndf": str(ndf), "neighbours": str(neighbours), "geometry": str(geometry)})
@@ -237,10 +323,15 @@ def run(geometry: str | Path, kd_path: str | Path, specular: str | Path, valid: 
                "points_eta_fitted_fraction": model.info["eta"]["fitted_fraction"],
                "eta_default": eta_default, "eta_bounds": [eta_min, eta_max],
                "eta_median": float(np.median(eta[capture.visible])) if capture.visible.any() else None,
+               "eta_interval_method": INTERVAL_METHOD, "max_eta_interval": max_eta_interval,
+               "materials_eta_identifiable": int(sum(r["eta_identifiable"] for r in records)),
                "per_material": records[:200]}
     truth = capture.truth()
     if truth is not None:
         on = capture.visible & (truth.region >= 0)
+        analytic = getattr(truth, "analytic", None)         # eta, ks of measured / conductor truth: placeholders
+        if analytic is not None:
+            on &= np.asarray(analytic, bool).reshape(on.shape)
         err = np.abs(eta - truth.eta)
         metrics["eta_abs_error_median"] = float(np.median(err[on])) if on.any() else None
         sel = on & model.eta_fitted
@@ -252,4 +343,18 @@ def run(geometry: str | Path, kd_path: str | Path, specular: str | Path, valid: 
             if sel.any() else None
         log.info("eta |error| median %s (fitted points: %s), ks median rel error %s", metrics["eta_abs_error_median"],
                  metrics["eta_abs_error_median_fitted"], metrics["ks_median_rel_error"])
+        names = [r.get("name", f"region{k}") for k, r in enumerate(Scene.load(capture.truth_scene).regions)]
+        names = [f"{nm}#{k}" if names.count(nm) > 1 else nm for k, nm in enumerate(names)]
+        spread, skipped = ndf_spread(model, truth, names, capture.visible)
+        metrics["ndf_spread"] = spread
+        metrics["ndf_spread_skipped"] = skipped
+        medians = [v["median"] for v in spread.values() if v["median"] is not None]
+        metrics["ndf_spread_max_median"] = float(max(medians)) if medians else None
+        metrics["ndf_spread_definition"] = (
+            "per truth region with one frame everywhere (points with analytic truth only): each point's final "
+            "normalised eq. 18 NDF on the model's grid against the region's mean NDF, relative L2 solid-angle "
+            "weighted over the whole hemisphere grid; median and 90th percentile over <= 2000 evenly strided "
+            "points; ndf_spread_max_median = the largest median")
+        for name, v in spread.items():
+            log.info("NDF spread in %s: median %s, p90 %s over %d points", name, v["median"], v["p90"], v["points"])
     write_json(metrics_out, metrics)

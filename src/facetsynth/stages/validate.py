@@ -20,9 +20,11 @@ from typing import Any
 import numpy as np
 
 from .. import manifest as manifest_io
-from ..fileio import atomic_path, read_rgb, write_json
-from ..metrics import image_scores
+from ..fileio import atomic_path, read_rgb, read_yaml, write_json
+from ..metrics import finite_or_none, frame_psnr, image_scores, relative_l2
 from ..predict import FrameRenderer, load_model, predict
+from ..render import radiance
+from ..scene import Scene
 from ..virtual_rig import VirtualRig, capture as virtual_capture
 
 log = logging.getLogger(__name__)
@@ -30,7 +32,19 @@ log = logging.getLogger(__name__)
 NORMALISATION = ("over the sample's pixels (every sub-pixel on the sample), linear radiance, all frames of a view "
                  "pooled: rmse in radiance units; psnr_db = 20 log10(peak / rmse) with peak = the largest true "
                  "radiance of the view; ssim of channel-mean images divided by that peak (Gaussian window 1.5, "
-                 "data range 1), averaged over sample pixels and frames; truth = the virtual rig's true radiance")
+                 "data range 1), averaged over sample pixels and frames; truth = the virtual rig's true radiance. "
+                 "heldout_rel_l2 = sqrt(sum (pred - truth)^2 / sum truth^2) over every frame, sample pixel and RGB "
+                 "channel of the view (no peak: every pixel counts by its radiance); heldout_specular_rel_l2 = the "
+                 "same of (pred - diffuse_truth) against (truth - diffuse_truth), diffuse_truth = the truth's kd/pi "
+                 "(n.i) L / r^2 of the same frames, over the sample pixels whose truth is analytic eq. 6 "
+                 "(MaterialMaps.analytic; specular_pixels counts them), rendered with the rig as it truly was (its "
+                 "calibration error, if any); heldout_frame_psnr_median_db / _worst_db: each frame's own PSNR over the "
+                 "sample pixels, peak = that frame's largest true radiance there, capped at 100 dB, frames "
+                 "without light on the sample skipped; the median and the minimum over the view's frames. Top-level "
+                 "figures are plain means of the per-view figures (the worst too: per view in views)")
+
+# per-frame PSNR above this counts as exact (rmse 0 gives no finite PSNR)
+MAX_FRAME_PSNR_DB = 100.0
 
 
 def heldout_rig(rig: VirtualRig, theta_deg: float, phi_deg: float, led_every: int, position_every: int) -> VirtualRig:
@@ -69,6 +83,10 @@ def _benchmark_seconds(path: str | Path) -> float | None:
     return float(rows[0]["s"]) if rows else None
 
 
+def _fmt(value) -> str:
+    return "n/a" if value is None else f"{value:.4g}"
+
+
 def _to_png(path: Path, image: np.ndarray) -> None:
     import OpenImageIO as oiio
     data = (np.clip(image, 0.0, 1.0) ** (1 / 2.2) * 255 + 0.5).astype(np.uint8)
@@ -91,10 +109,99 @@ def side_by_side(truth: np.ndarray, ours: np.ndarray, ward: np.ndarray | None, p
     return np.concatenate(parts[:-1], axis=1)
 
 
+def diffuse_truth(scene: Scene, camera, lights: np.ndarray, intensities: np.ndarray,
+                  supersample: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """The truth's diffuse radiance kd/pi (n.i) L / |P - x|^2 (eq. 8 forwards, eq. 6's first term) per frame.
+
+    Rendered as the virtual rig renders the truth (each sub-pixel sees its plane
+    point, box filter over ``supersample`` x ``supersample`` sub-pixels), for the
+    lights (F, 3) and intensities (F, 3). Returns (diffuse (F, H, W, 3) float32,
+    analytic (H, W) bool: pixels whose every sub-pixel is on the sample and whose
+    truth is exactly eq. 6 there, i.e. where kd is the truth's diffuse term;
+    ``MaterialMaps.analytic`` when the scene has it, else every sample point).
+    """
+    s = int(supersample)
+    xy = camera.pixel_plane_points(s)
+    on = scene.on_sample(xy)
+    maps = scene.parameters(xy[on])
+    points = np.concatenate([xy[on], np.zeros((int(on.sum()), 1))], axis=-1)
+    analytic_points = getattr(maps, "analytic", None)
+    known = on.copy()
+    if analytic_points is not None:
+        known[on] = np.asarray(analytic_points, bool).reshape(-1)
+    h, w = camera.height, camera.width
+    analytic = known.reshape(h, s, w, s).all(axis=(1, 3))
+    kd_over_pi = np.asarray(maps.kd, float) / np.pi
+    out = np.zeros((len(lights), h, w, 3), np.float32)
+    image = np.zeros(on.shape + (3,))
+    for q, (light, intensity) in enumerate(zip(lights, intensities)):
+        image[on] = radiance(points, lambda wi, wo: kd_over_pi, light, intensity, camera.centre)
+        out[q] = image.reshape(h, s, w, s, 3).mean(axis=(1, 3))
+    return out, analytic
+
+
+def true_rig(m: dict[str, Any]) -> tuple[Any, np.ndarray, np.ndarray]:
+    """(camera, light positions (F, 3), intensities (F, 3)) the held-out truth was rendered with.
+
+    The manifest's calibrated values, or, when the virtual rig had a
+    calibration error (``truth/calibration.json``), the true ones: the camera
+    turned by its rotation, each frame's LED moved by its offset and scaled by
+    its intensity factor (:class:`facetsynth.virtual_rig.CalibrationError`).
+    """
+    from ..camera import Camera
+    from ..fileio import read_json
+    camera = manifest_io.camera(m)
+    lights, intensities = manifest_io.light_positions(m), manifest_io.light_intensities(m)
+    record = m.get("truth", {}).get("calibration")
+    if record is None:
+        return camera, lights, intensities
+    cal = read_json(Path(m["_dir"]) / record)
+    camera = Camera(camera.width, camera.height, camera.K, np.asarray(cal["camera"]["R"], float),
+                    np.asarray(cal["camera"]["t"], float), camera.distortion)
+    led = np.array([f["led"] for f in m["frames"]], int)
+    lights = lights + np.asarray(cal["led_offset_m"], float)[led]
+    intensities = intensities * np.asarray(cal["led_intensity_factor"], float)[led]
+    return camera, lights, intensities
+
+
+def trusted_scores(truth: np.ndarray, prediction: np.ndarray, mask: np.ndarray,
+                   diffuse: np.ndarray | None = None, specular_mask: np.ndarray | None = None) -> dict[str, Any]:
+    """The scores that do not hide faults behind the view's peak (issue 13 item 4).
+
+    ``heldout_rel_l2``: relative L2 of the radiance over ``mask``, every frame
+    and channel (:func:`facetsynth.metrics.relative_l2`);
+    ``heldout_specular_rel_l2``: the same of the specular part, (prediction -
+    diffuse) against (truth - diffuse), over ``specular_mask`` (None without a
+    diffuse truth); ``heldout_frame_psnr_median_db`` / ``_worst_db``: median and
+    minimum of each frame's own PSNR (:func:`facetsynth.metrics.frame_psnr`).
+    Values that are not finite become None (no NaN leaves the stage).
+    """
+    psnr = frame_psnr(truth, prediction, mask, MAX_FRAME_PSNR_DB)
+    lit = psnr[np.isfinite(psnr)]
+    out = {"heldout_rel_l2": finite_or_none(relative_l2(prediction, truth, mask)),
+           "heldout_frame_psnr_median_db": finite_or_none(np.median(lit)) if lit.size else None,
+           "heldout_frame_psnr_worst_db": finite_or_none(lit.min()) if lit.size else None,
+           "heldout_specular_rel_l2": None}
+    if diffuse is not None and specular_mask is not None:
+        out["heldout_specular_rel_l2"] = finite_or_none(relative_l2(prediction, truth, specular_mask, diffuse))
+    return out
+
+
+def _supersample(rig: str | Path | None) -> int:
+    """The rig description's sub-pixel count per axis (the held-out truth was rendered with it)."""
+    if rig is None:
+        return 1
+    return int(read_yaml(rig).get("supersample", 1))
+
+
 def run(svbrdf: str | Path, ward: str | Path | None, heldout: dict[str, str | Path], out_dir: str | Path,
         metrics_out: str | Path, images_out: str | Path, fit_benchmarks: list[str | Path],
-        ward_benchmark: str | Path | None, images_per_view: int = 2) -> None:
-    """Predict every held-out view with both models, score them, write metrics.json and the images."""
+        ward_benchmark: str | Path | None, images_per_view: int = 2, rig: str | Path | None = None) -> None:
+    """Predict every held-out view with both models, score them, write metrics.json and the images.
+
+    ``rig``: the sample's rig description (its ``supersample`` renders the
+    truth's diffuse term as the truth was rendered; default 1).
+    """
     out_dir, images_out = Path(out_dir), Path(images_out)
     images_out.mkdir(parents=True, exist_ok=True)
     per_view: dict[str, Any] = {}
@@ -110,19 +217,31 @@ def run(svbrdf: str | Path, ward: str | Path | None, heldout: dict[str, str | Pa
             predicted = predict(model, Path(folder) / "manifest.json", target, progress=False)
             predictions[name] = np.stack([read_rgb(target / f["exposures"][0]["file"])
                                           for f in predicted["frames"]]).astype(float)
+        diffuse, specular_mask = None, None
+        if manifest_io.has_truth(m):
+            diffuse, analytic = diffuse_truth(Scene.load(m["truth"]["scene"]), *true_rig(m), _supersample(rig))
+            specular_mask = mask & analytic
         ours = image_scores(truth, predictions["ours"], mask)
         record = {"frames": len(m["frames"]), "sample_pixels": int(mask.sum()),
                   "camera_centre": manifest_io.camera(m).centre.tolist(),
                   "heldout_psnr_db": ours["psnr_db"], "heldout_rmse": ours["rmse"],
                   "heldout_rmse_normalised": ours["rmse_normalised"], "heldout_ssim": ours["ssim"],
-                  "peak_radiance": ours["peak"]}
+                  "peak_radiance": ours["peak"],
+                  "specular_pixels": None if specular_mask is None else int(specular_mask.sum())}
+        record.update(trusted_scores(truth, predictions["ours"], mask, diffuse, specular_mask))
         if "ward" in predictions:
             base = image_scores(truth, predictions["ward"], mask)
             record.update({"baseline_ward_psnr_db": base["psnr_db"], "baseline_ward_rmse": base["rmse"],
                            "baseline_ward_ssim": base["ssim"]})
+            record.update({"baseline_ward_" + k[len("heldout_"):]: v for k, v in
+                           trusted_scores(truth, predictions["ward"], mask, diffuse, specular_mask).items()})
         per_view[view] = record
-        log.info("%s: ours %.2f dB (SSIM %.4f)%s", view, ours["psnr_db"], ours["ssim"],
-                 f", Ward {record['baseline_ward_psnr_db']:.2f} dB" if "ward" in predictions else "")
+        log.info("%s: ours %.2f dB (SSIM %.4f, rel L2 %s, specular rel L2 %s, frame PSNR median %s / worst %s dB)%s",
+                 view, ours["psnr_db"], ours["ssim"], _fmt(record["heldout_rel_l2"]),
+                 _fmt(record["heldout_specular_rel_l2"]), _fmt(record["heldout_frame_psnr_median_db"]),
+                 _fmt(record["heldout_frame_psnr_worst_db"]),
+                 f", Ward {record['baseline_ward_psnr_db']:.2f} dB (rel L2 {_fmt(record['baseline_ward_rel_l2'])}, "
+                 f"specular {_fmt(record['baseline_ward_specular_rel_l2'])})" if "ward" in predictions else "")
         brightest = np.argsort(truth.sum(axis=(1, 2, 3)))[::-1][:images_per_view]
         for q in brightest:
             peak = float(truth[q][mask].max()) if mask.any() else 1.0
@@ -131,14 +250,19 @@ def run(svbrdf: str | Path, ward: str | Path | None, heldout: dict[str, str | Pa
                     side_by_side(truth[q], predictions["ours"][q], ward_img, peak))
 
     def mean(key):
-        values = [v[key] for v in per_view.values() if key in v]
+        values = [v[key] for v in per_view.values() if v.get(key) is not None]
         return float(np.mean(values)) if values else None
+
+    trusted = {prefix + key: mean(prefix + key) for prefix in ("heldout_", "baseline_ward_")
+               for key in ("rel_l2", "specular_rel_l2", "frame_psnr_median_db", "frame_psnr_worst_db")}
 
     fit_times = {Path(b).stem: _benchmark_seconds(b) for b in fit_benchmarks}
     metrics = {"normalisation": NORMALISATION, "views": per_view,
                "heldout_psnr_db": mean("heldout_psnr_db"), "heldout_rmse": mean("heldout_rmse"),
                "heldout_ssim": mean("heldout_ssim"), "baseline_ward_psnr_db": mean("baseline_ward_psnr_db"),
                "baseline_ward_ssim": mean("baseline_ward_ssim"),
+               **trusted,
+               "specular_pixels": {v: r["specular_pixels"] for v, r in per_view.items()},
                "fit_seconds": {"ours": (sum(v for v in fit_times.values() if v is not None)
                                         if any(v is not None for v in fit_times.values()) else None),
                                "ours_stages": fit_times,
