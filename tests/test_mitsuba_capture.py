@@ -1,0 +1,218 @@
+"""An independent renderer (issue 13 item 3): Mitsuba 3 renders a capture the project's model did not render.
+
+(a) geometry: the Mitsuba sensor made from a manifest camera images 3D points where
+    :class:`facetsynth.camera.Camera` projects them; (b) radiometry: a Lambertian plane, and an anisotropic
+    GGX material inside the project's model family, rendered by Mitsuba equal the pixel model of DESIGN.md
+    sec. 4 (:func:`facetsynth.render.radiance`); (c) end to end: a Mitsuba capture of an anisotropic copper
+    conductor (Mitsuba's own conductor Fresnel and Smith shadowing: outside eq. 6) is imported by the
+    workflow, fitted, and ``facetsynth predict`` is scored against a held-out view that Mitsuba also renders.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install mitsuba, or the test extra): "
+                                      "the independent-renderer tests need it")
+
+from facetsynth import cli, manifest as manifest_io, microfacet  # noqa: E402
+from facetsynth import mitsuba_capture as mc  # noqa: E402
+from facetsynth.camera import Camera  # noqa: E402
+from facetsynth.fileio import read_rgb  # noqa: E402
+from facetsynth.metrics import marker_centroids  # noqa: E402
+from facetsynth.render import radiance  # noqa: E402
+from facetsynth.stages.capture import check_capture  # noqa: E402
+from facetsynth.virtual_rig import VirtualRig  # noqa: E402
+
+RIG = Path(__file__).parent / "data" / "rig-mitsuba.yaml"
+SIZE = (0.10, 0.10)
+# The test material: the issue's anisotropic GGX (alpha_u 0.15, alpha_v 0.35) as Mitsuba's rough copper
+# conductor (complex Fresnel, no diffuse term), its u axis along circles about the centre (lathe-turned).
+COPPER = mc.EXAMPLE_BSDF
+HELDOUT_VIEW = (50.9, -15.3)          # config.yaml validate.views 'paper', phi relative to the fitting camera
+# Held-out relative L2 of the fit over the sample pixels (all frames pooled), measured 2026-12-01: 0.319 at
+# commits 66c7d9f and cdb8eed (the Ward baseline: 0.296; the project's own renderer given the same copper, rig
+# and preset: 0.46, Ward 0.32). The bound is that plus 16 %; the issue's target is 0.10.
+MAX_HELDOUT_REL_L2 = 0.37
+
+
+@pytest.fixture(scope="module")
+def rig() -> VirtualRig:
+    return VirtualRig.load(RIG)
+
+
+def _plane(tmp_path: Path, frame=0.0) -> Path:
+    return mc.write_plane_mesh(tmp_path / "sample.ply", SIZE[0], SIZE[1], frame)
+
+
+def _plane_points(camera: Camera) -> np.ndarray:
+    xy = camera.pixel_plane_points(1)
+    return np.concatenate([xy, np.zeros(xy.shape[:-1] + (1,))], axis=-1)
+
+
+# --- (a) geometry --------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("shift", [(0.0, 0.0), (-6.3, 4.2)], ids=["centred", "off-centre-principal-point"])
+def test_mitsuba_images_points_where_the_manifest_camera_projects_them(rig, tmp_path, shift):
+    """A small emissive sphere off the plane and the four black markers on it land within 0.1 px of
+    Camera.project (measured: at most 0.06 px; the brief's bound is 0.5 px)."""
+    import mitsuba as mi
+    base = rig.camera(SIZE[0])
+    K = base.K.copy()
+    K[0, 2] += shift[0]
+    K[1, 2] += shift[1]
+    camera = Camera(base.width, base.height, K, base.R, base.t)
+    for point in ([0.021, -0.013, 0.03], [-0.03, 0.02, 0.0]):
+        scene = {"type": "scene", "integrator": {"type": "direct"}, "sensor": mc.sensor_dict(camera, spp=256),
+                 "dot": {"type": "sphere", "center": point, "radius": 0.0008,
+                         "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [1.0, 1.0, 1.0]}}}}
+        image = np.array(mi.render(mi.load_dict(scene)))[..., 0]
+        rows, cols = np.mgrid[0:image.shape[0], 0:image.shape[1]]
+        found = np.array([(image * cols).sum(), (image * rows).sum()]) / image.sum()
+        assert np.hypot(*(found - camera.project(np.array(point)))) < 0.1
+    # the markers, on a white plane lit almost uniformly from far above
+    lit = mc.Renderer(mc.scene_dict(camera, {"type": "diffuse"}, _plane(tmp_path), spp=64)).render(
+        [0.0, 0.0, 100.0], [1e4] * 3)
+    centres = np.array(mc.DEMO_MARKERS["positions"])
+    expected = camera.project(np.c_[centres, np.zeros(len(centres))])
+    found = marker_centroids(lit.mean(axis=-1), expected, mc.DEMO_MARKERS["radius"] * camera.K[0, 0])
+    assert np.isfinite(found).all()                       # every marker's window inside the image
+    assert np.hypot(*(found - expected).T).max() < 0.1
+
+
+def test_sensor_rejects_what_a_perspective_sensor_cannot_be(rig):
+    base = rig.camera(SIZE[0])
+    K = base.K.copy()
+    K[1, 1] *= 1.01
+    with pytest.raises(ValueError, match="square pixels"):
+        mc.sensor_dict(Camera(base.width, base.height, K, base.R, base.t))
+    with pytest.raises(ValueError, match="distortion"):
+        mc.sensor_dict(Camera(base.width, base.height, base.K, base.R, base.t, np.array([0.1, 0, 0, 0, 0])))
+
+
+# --- (b) radiometry ------------------------------------------------------------------------------------------
+
+def test_lambertian_plane_matches_the_pixel_model(rig, tmp_path):
+    """Mitsuba's point light (intensity per steradian) and diffuse BSDF give I = rho (n.i) L / r^2: median
+    relative error over the sample pixels 1e-3 at 32 spp (bound 1 %), under rig lights near and far."""
+    camera = rig.camera(SIZE[0])
+    albedo = np.array([0.7, 0.5, 0.3])
+    renderer = mc.Renderer(mc.scene_dict(camera, {"type": "diffuse", "reflectance": {"type": "rgb",
+                                                                                      "value": albedo.tolist()}},
+                                         _plane(tmp_path), spp=32))
+    mask = mc.sample_pixels(camera, SIZE)
+    plan = rig.scan()
+    for steps, led in (plan[0], plan[len(plan) // 2], plan[-1]):
+        light, intensity = rig.led_position(led, steps), np.array([0.3, 0.25, 0.2])
+        truth = radiance(_plane_points(camera), lambda wi, wo: np.broadcast_to(albedo / np.pi, wi.shape),
+                         light, intensity, camera.centre)
+        image = renderer.render(light, intensity)
+        rel = np.abs(image[mask] / truth[mask] - 1.0)
+        assert np.median(rel) < 0.01
+        assert np.percentile(rel, 95) < 0.03
+
+
+def test_anisotropic_ggx_and_its_tangent_frame_match_the_model(rig, tmp_path):
+    """Inside eq. 6's family (GGX, Smith shadowing, dielectric Fresnel as a k = 0 conductor, diffuse base)
+    Mitsuba and facetsynth.microfacet.rho agree to 0.3 % (relative L1 over the sample): the mesh's texture
+    coordinates put the BSDF's u axis at the frame azimuth (the mirrored frame is 10-40 % off)."""
+    camera = rig.camera(SIZE[0])
+    kd, ks, eta, au, av = np.array([0.2, 0.1, 0.05]), np.array([0.75, 0.5, 0.38]), 1.8, 0.1, 0.3
+    w = 0.75   # blendbsdf: (1 - w) diffuse + w conductor, each reflectance <= 1
+    bsdf = {"type": "blendbsdf", "weight": w,
+            "bsdf_0": {"type": "diffuse", "reflectance": {"type": "rgb", "value": (kd / (1 - w)).tolist()}},
+            "bsdf_1": {"type": "roughconductor", "distribution": "ggx", "alpha_u": au, "alpha_v": av,
+                       "eta": eta, "k": 0.0, "specular_reflectance": {"type": "rgb", "value": (ks / w).tolist()}}}
+    renderer = mc.Renderer(mc.scene_dict(camera, bsdf, _plane(tmp_path, 30.0), spp=32))
+    mask = mc.sample_pixels(camera, SIZE)
+    points = _plane_points(camera)
+    for light in ([0.01, 0.05, 0.04], [-0.03, 0.0, 0.04], [0.0, -0.05, 0.04]):
+        image = renderer.render(light, [0.3] * 3)
+
+        def rel_l1(phi_deg):
+            model = radiance(points, lambda wi, wo: microfacet.rho(wi, wo, kd, ks, eta, au, av, np.radians(phi_deg)),
+                             np.array(light), [0.3] * 3, camera.centre)
+            return np.abs(image[mask] - model[mask]).sum() / model[mask].sum()
+
+        assert rel_l1(30.0) < 0.006
+        assert rel_l1(-30.0) > 0.05
+
+
+# --- (c) end to end: import, fit, predict a held-out Mitsuba view ---------------------------------------------
+
+def _workdir(repo: Path, dest: Path, capture: Path) -> Path:
+    """A copy of the workflow whose sample sheet imports ``capture`` as sample 'mitsuba'; the fast preset."""
+    dest.mkdir(parents=True)
+    for part in ("Snakefile", "workflow", "config", "resources", "rig"):
+        src = repo / part
+        (shutil.copytree if src.is_dir() else shutil.copy)(src, dest / part)
+    (dest / "config/samples.tsv").write_text(f"sample\tsource\tpath\trig\nmitsuba\timport\t{capture}\t\n")
+    (dest / "fast.yaml").write_text("preset: fast\n")   # rectify.resolution 32 and the fast direction grids
+    return dest
+
+
+@pytest.fixture(scope="module")
+def fitted(repo, rig, tmp_path_factory):
+    """Mitsuba renders the fitting capture (340 lights) and the held-out view (25 lights); the workflow
+    imports the first and fits it; `facetsynth predict` renders the held-out view from the fit."""
+    root = tmp_path_factory.mktemp("mitsuba")
+    fit = mc.render_capture(rig, COPPER, root / "capture", SIZE, frame="turned", spp=8, seed=3)
+    held = mc.render_capture(rig, COPPER, root / "heldout", SIZE, frame="turned", spp=8, seed=3,
+                             view=HELDOUT_VIEW, led_every=4, position_every=4)
+    workdir = _workdir(repo, root / "wf", root / "capture")
+    done = subprocess.run([sys.executable, "-m", "snakemake", "--cores", "2", "results/mitsuba/svbrdf",
+                           "--configfile", "config/config.yaml", "fast.yaml"],
+                          cwd=workdir, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert cli.main(["predict", str(workdir / "results/mitsuba/svbrdf"), str(root / "heldout/manifest.json"),
+                     str(root / "predicted")]) == 0
+    return {"root": root, "fit": fit, "held": held, "workdir": workdir}
+
+
+def test_a_mitsuba_capture_is_a_valid_foreign_capture(fitted):
+    fit, held, root = fitted["fit"], fitted["held"], fitted["root"]
+    assert len(fit["frames"]) == 340 and len(held["frames"]) == 25
+    for m in (fit, held):
+        assert "saturation" not in m and "truth" not in m                 # HDR, never clipped; no ground truth
+        assert m["provenance"]["renderer"].startswith("Mitsuba 3") and m["provenance"]["bsdf"] == COPPER
+        assert all(f["exposures"] == [{"file": f"frames/{q:04d}.exr", "time": 1.0}] for q, f in enumerate(m["frames"]))
+    check_capture(root / "capture")                                       # what `facetsynth check` runs
+    cam = manifest_io.camera(manifest_io.load(root / "heldout"))
+    theta = np.degrees(np.arccos(cam.centre[2] / np.linalg.norm(cam.centre)))
+    fit_cam = manifest_io.camera(manifest_io.load(root / "capture"))
+    dphi = np.degrees(np.arctan2(cam.centre[1], cam.centre[0]) - np.arctan2(fit_cam.centre[1], fit_cam.centre[0]))
+    assert theta == pytest.approx(HELDOUT_VIEW[0], abs=1e-6) and dphi == pytest.approx(HELDOUT_VIEW[1], abs=1e-6)
+    params = json.loads((fitted["workdir"] / "results/mitsuba/params/metrics.json").read_text())
+    assert params["ground_truth"] is False
+
+
+def test_the_fit_predicts_a_held_out_mitsuba_view(fitted):
+    """The issue's figure: relative L2 of the predicted radiance over the held-out view's sample pixels
+    (every sub-pixel on the sample, off the markers), all frames pooled. Writes truth | prediction |
+    4 x difference of the brightest frame (scaled by its peak, pixels shown 4 x 4) to
+    heldout_side_by_side.png beside the captures."""
+    from facetsynth.stages.validate import _to_png, side_by_side
+    root = fitted["root"]
+    held = manifest_io.load(root / "heldout")
+    camera = manifest_io.camera(held)
+    mask = mc.sample_pixels(camera, SIZE, held["provenance"]["markers"])
+    truth = np.stack([read_rgb(f["exposures"][0]["file"]) for f in held["frames"]]).astype(float)
+    predicted = np.stack([read_rgb(root / f"predicted/frames/{q:04d}.exr")
+                          for q in range(len(held["frames"]))]).astype(float)
+    t, p = truth[:, mask], predicted[:, mask]
+    rel_l2 = float(np.sqrt(((p - t) ** 2).sum() / (t ** 2).sum()))
+    q = int(np.argmax(t.sum(axis=(1, 2))))
+    _to_png(root / "heldout_side_by_side.png",
+            side_by_side(truth[q] * mask[..., None], predicted[q] * mask[..., None], None,
+                         float(t[q].max())).repeat(4, axis=0).repeat(4, axis=1))
+    print(f"held-out relative L2 {rel_l2:.4f} over {mask.sum()} pixels x {len(truth)} frames; "
+          f"image {root / 'heldout_side_by_side.png'}")
+    assert mask.sum() > 0.6 * camera.width * camera.height
+    assert rel_l2 < MAX_HELDOUT_REL_L2
