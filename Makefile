@@ -1,6 +1,7 @@
 # Two commands for a fresh machine with Python 3.11:
 #   make run   - set up .venv, install facetsynth, run the workflow on the demo sample
 #   make test  - set up .venv, install facetsynth with test extras, run the test suite
+#   make test-scenes - the slow whole-workflow scene tests of issue 13 (about 10 min; CI runs them after make test)
 #   make bench - run every preset (fast, balanced, accurate) on demo, wallpaper and satin and write
 #                results/bench/tradeoff.csv and tradeoff.png (about 17 min on 2 cores); restrict with
 #                make bench BENCH_PRESETS=fast BENCH_SCENES=demo, or BENCH_ARGS=--dry-run
@@ -13,7 +14,7 @@ BENCH_PRESETS ?= fast balanced accurate
 BENCH_SCENES ?= demo wallpaper satin
 BENCH_ARGS ?=
 
-.PHONY: run test bench clean
+.PHONY: run test test-scenes bench clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -36,6 +37,9 @@ run: $(VENV)/.installed-run
 
 test: $(VENV)/.installed-test
 	$(BIN)/python -m pytest -q
+
+test-scenes: $(VENV)/.installed-test
+	$(BIN)/python -m pytest -q -m scenes
 
 bench: $(VENV)/.installed-bench
 	$(BIN)/python workflow/scripts/bench.py --cores $(CORES) --presets $(BENCH_PRESETS) --scenes $(BENCH_SCENES) $(BENCH_ARGS)

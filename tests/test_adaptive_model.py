@@ -112,7 +112,9 @@ def test_card_runs_no_synthesis_search_and_loses_nothing(card_run, tmp_path):
     synthesize.run(res / "rectify/geometry.json", res / "partial_ndf/ndf.npy", res / "partial_ndf/confidence.npy",
                    res / "resample/grid.json", res / "cluster/representatives.npy", res / "cluster/neighbours.npy",
                    res / "cluster/weights.npy", tmp_path / "ndf.npy", tmp_path / "confidence.npy",
-                   tmp_path / "cosine.npy", tmp_path / "grid.json", searched, isotropic_threshold=0.0)
+                   tmp_path / "cosine.npy", tmp_path / "grid.json", searched, isotropic_threshold=0.0,
+                   rep_ndf=res / "cluster/representative_ndf.npy",
+                   rep_confidence=res / "cluster/representative_confidence.npy")
     s = json.loads(searched.read_text())
     assert s["search_skipped"] is False and s["isotropic_representatives"] == 0 and s["merges"] > 0
     assert m["ndf_rel_l2_median"] <= s["ndf_rel_l2_median"] + 0.01
@@ -124,5 +126,6 @@ def test_card_needs_fewer_representatives_than_demo(card_run):
     m = metrics(card_run, "card", "cluster")
     assert m["representatives_rule"] == "auto" and m["k_chosen"] == m["representatives_requested"]
     assert m["k_chosen"] < 41
-    assert m["k_distortion_curve"][-1] <= m["k_distortion_tolerance"] or m["k_chosen"] == m["k_ladder"][-1]
+    assert (m["k_distortion_curve"][-1] <= m["k_distortion_tolerance"] or m["k_spread_curve"][-1] <= m["spread_tolerance"]
+            or m["k_chosen"] == m["k_ladder"][-1])
     assert "representatives: auto" in (card_run / "results/card/logs/cluster.log").read_text()

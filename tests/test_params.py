@@ -401,6 +401,7 @@ def test_ndf_spread_skips_turning_frames_and_scores_a_constant_one():
     model = tabulate_truth(maps, DirectionGrid(16, 64), plane)
     visible = np.ones(64, bool)
     spread, skipped = stage.ndf_spread(model, maps, ["turned", "straight"], visible)
+    spread_all = spread
     assert set(spread) == {"straight"} and "turns" in skipped["turned"]
     assert spread["straight"] == {"points": 32, "median": 0.0, "p90": 0.0}
     # one point of the straight region given the turned region's first NDF: the spread sees it
@@ -411,10 +412,11 @@ def test_ndf_spread_skips_turning_frames_and_scores_a_constant_one():
                                                                "weights")}, "neighbours": odd})
     spread, _ = stage.ndf_spread(changed, maps, ["turned", "straight"], visible, max_points=8)
     assert spread["straight"]["points"] == 8 and spread["straight"]["p90"] > 0.1
-    # only points whose truth is analytic eq. 6 (MaterialMaps.analytic)
+    # any material kind counts (a measured region has no true NDF, but its fitted NDFs still should agree)
     import dataclasses
     marked = dataclasses.replace(maps, analytic=maps.region == 0)
-    spread, skipped = stage.ndf_spread(model, marked, ["turned", "straight"], visible)
+    assert stage.ndf_spread(model, marked, ["turned", "straight"], visible)[0] == spread_all
+    spread, skipped = stage.ndf_spread(model, maps, ["turned", "straight"], ~(maps.region == 1))
     assert spread == {} and "no visible point" in skipped["straight"]
 
 

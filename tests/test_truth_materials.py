@@ -414,7 +414,7 @@ def small_rig(**calibration_error):
 def test_measured_capture_copies_its_brdfs_into_the_truth(repo, tmp_path, monkeypatch):
     out = capture(repo / "resources/scenes/rgl-quadrants.yaml", small_rig(), tmp_path / "cap", seed=1, noise=False)
     names = sorted(p.name for p in (out / "truth/brdfs").iterdir())
-    assert names == ["cc_ibiza_sunset_rgb.bsdf", "colodur_napoli_4f_rgb.bsdf", "satin_rosaline_rgb.bsdf",
+    assert names == ["colodur_napoli_4f_rgb.bsdf", "paper_white_rgb.bsdf", "satin_rosaline_rgb.bsdf",
                      "vch_golden_yellow_rgb.bsdf"]
     d = yaml.safe_load((out / "truth/scene.yaml").read_text())
     assert {r["measured"]["file"] for r in d["regions"]} == {f"brdfs/{n}" for n in names}

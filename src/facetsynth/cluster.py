@@ -17,20 +17,89 @@ import numpy as np
 from scipy.cluster.hierarchy import fcluster, linkage
 
 from .grid import DirectionGrid
-from .synthesis import SUPPORT, TINY, pairwise_distance
+from .synthesis import SUPPORT, TINY, pairwise_distance, rotate_tuple
 
 log = logging.getLogger(__name__)
 
 
-def features(d: np.ndarray, w: np.ndarray, grid: DirectionGrid) -> np.ndarray:
+COARSE_RINGS = 8   # the clustering grid: 8 rings x 32 sectors (11.25 deg cells)
+
+
+def coarse(d: np.ndarray, w: np.ndarray, grid: DirectionGrid,
+           rings: int = COARSE_RINGS) -> tuple[np.ndarray, np.ndarray, DirectionGrid]:
+    """Partial NDFs <D, W> (N, T, F) averaged over blocks of cells to a ``rings`` x 4 ``rings`` grid.
+
+    A point's partial NDF depends on where its samples fall relative to the
+    lobe: at the paper's light densities a glossy lobe is one or two lights
+    wide, and its interpolated shape changes with the point's place under
+    the LEDs. Over cells several light spacings wide, that phase averages out
+    and what remains is the material's: clustering and eq. 18 compare points
+    on this grid (docs/decisions.md, "Sampling-invariant partial NDFs").
+    D is averaged with solid-angle weights, W plainly; a grid that does not
+    divide into the coarse one is returned as it is.
+    """
+    if grid.n_theta % rings or grid.n_phi % (4 * rings) or grid.n_theta <= rings:
+        return np.asarray(d, float), np.asarray(w, float), grid
+    bt, bp = grid.n_theta // rings, grid.n_phi // (4 * rings)
+    n = len(d)
+    om = grid.solid_angles
+    area = om.reshape(rings, bt, 4 * rings, bp).sum(axis=(1, 3))
+    dc = (np.asarray(d, float) * om).reshape(n, rings, bt, 4 * rings, bp).sum(axis=(2, 4)) / area
+    wc = np.asarray(w, float).reshape(n, rings, bt, 4 * rings, bp).mean(axis=(2, 4))
+    return dc, wc, DirectionGrid(rings, 4 * rings)
+
+
+def common_domain(w: np.ndarray, fraction: float = 0.97, level: float = 0.6) -> np.ndarray | None:
+    """Cells (T, F) where at least ``fraction`` of the points have W >= ``level``; None if there are none."""
+    domain = np.mean(np.asarray(w) >= level, axis=0) >= fraction
+    return domain if domain.any() else None
+
+
+def relative_rotation(d: np.ndarray, w: np.ndarray, d_ref: np.ndarray, w_ref: np.ndarray, grid: DirectionGrid,
+                      max_shift: int = 16) -> tuple[np.ndarray, np.ndarray]:
+    """The azimuth phi (N,) by which each tuple <d, w> (N, T, F) is the reference <d_ref, w_ref> (T, F) turned:
+    D(h) ~ D_ref(R(phi) h) (eq. 13), the eq. 15 distance minimised over whole-sector shifts up to
+    ``max_shift`` either way, refined by a parabola through the best shift and its neighbours; and the
+    gain (N,): the best whole-shift distance over the unturned one (1: turning explains nothing).
+
+    A cluster of a material whose frame turns across the sample (the demo's turned copper, 45
+    representatives for 360 deg) spans several degrees of rotation; pooling its members' samples
+    without undoing it would blur the lobe. An isotropic material has a flat distance curve, and
+    any phi it gets turns it onto itself.
+    """
+    shifts = np.arange(-max_shift, max_shift + 1)
+    dist = np.stack([pairwise_distance(d, w, *(a[None] for a in rotate_tuple(d_ref, w_ref, grid, float(s))), grid)[:, 0]
+                     for s in shifts], axis=1)
+    dist = np.where(np.isfinite(dist), dist, np.inf)
+    best = np.argmin(dist, axis=1)
+    shift = shifts[best].astype(float)
+    inner = (best > 0) & (best < shifts.size - 1)
+    rows = np.flatnonzero(inner & np.isfinite(dist[np.arange(len(d)), best]))
+    if rows.size:
+        lo, mid, hi = (dist[rows, best[rows] + k] for k in (-1, 0, 1))
+        curve = lo - 2.0 * mid + hi
+        ok = np.isfinite(curve) & (curve > TINY)
+        shift[rows[ok]] += np.clip(0.5 * (lo - hi)[ok] / curve[ok], -0.5, 0.5)
+    unturned = dist[:, max_shift]
+    best_dist = dist[np.arange(len(d)), best]
+    gain = np.divide(best_dist, unturned, out=np.ones(len(d)), where=np.isfinite(unturned) & (unturned > TINY))
+    return shift * grid.d_phi, gain
+
+
+def features(d: np.ndarray, w: np.ndarray, grid: DirectionGrid, domain: np.ndarray | None = None) -> np.ndarray:
     """k-means features (N, T*F) float32: sqrt(W dw) D / s, s = integral of D over the domain.
 
     Their squared Euclidean distance approximates the numerator of eq. 15
     (the scale s taken over each tuple's own domain rather than the overlap,
-    which is nearly the same domain for points seen from one view).
+    which is nearly the same domain for points seen from one view). With a
+    ``domain`` (T, F) (:func:`common_domain`), every point is compared on the
+    same cells with W = 1 there: the domain each point sees moves with its
+    place under the lights and the camera, and is not the material's.
     """
     d = np.asarray(d, float)
     w = np.clip(np.asarray(w, float), 0.0, None)
+    if domain is not None:
+        w = np.broadcast_to(np.asarray(domain, float), d.shape)
     m = w > SUPPORT
     om = grid.solid_angles
     s = np.sum(np.where(m, d, 0.0) * om, axis=(-2, -1))
@@ -103,11 +172,14 @@ class KChoice:
     rule: str                    # how k was chosen, in words
     subsample: int               # rows the scan clustered
     seconds: float = 0.0         # time the scan took
+    spread: list = ()            # RMS relative L2 of the rows from their cluster centres at each k
 
 
 def choose_k(feats: np.ndarray, k_min: int, k_max: int, tolerance: float, subsample: int = 2048,
-             seed: int = 0, components: int = 64) -> KChoice:
-    """The smallest k on a geometric ladder whose k-means distortion falls below ``tolerance``.
+             seed: int = 0, components: int = 64, spread: float = 0.0) -> KChoice:
+    """The smallest k on a geometric ladder whose k-means distortion falls below ``tolerance``, or whose
+    clusters are each one material: points within ``spread`` (relative L2, RMS over the points) of their
+    centre.
 
     Distortion: sum over rows of |f - centre(f)|^2 (the features' squared
     distance approximates eq. 15's numerator) over the total variance sum
@@ -116,6 +188,11 @@ def choose_k(feats: np.ndarray, k_min: int, k_max: int, tolerance: float, subsam
     scores each partition in the full feature space. eq. 15 is not rotation
     invariant, so one material seen in many frames (a turned disc) counts
     as many shapes. If no k up to ``k_max`` reaches the tolerance, k_max.
+
+    The spread test is absolute: sum |f - centre(f)|^2 / sum |f|^2 <=
+    spread^2. Without it a uniform material never stops (its total variance
+    is all noise and sampling, which k-means splits as readily as
+    materials) and goes to ``k_max``.
     """
     from sklearn.cluster import KMeans
     from sklearn.decomposition import PCA
@@ -125,15 +202,16 @@ def choose_k(feats: np.ndarray, k_min: int, k_max: int, tolerance: float, subsam
     n = len(x)
     ladder = [k for k in k_ladder(k_min, k_max) if k <= n] or [max(1, min(k_min, n))]
     rule = (f"smallest k on the ladder {ladder[0]}..{ladder[-1]} (ratio sqrt 2) whose k-means distortion "
-            f"/ total variance <= {tolerance:g} (else {ladder[-1]})")
+            f"/ total variance <= {tolerance:g} or / sum of squares <= {spread:g}^2 (else {ladder[-1]})")
     total = float(np.sum((x - x.mean(axis=0)) ** 2))
+    energy = float(np.sum(x * x))
     if total <= TINY:
         return KChoice(k=ladder[0], ladder=ladder[:1], distortion=[0.0], rule=rule, subsample=n,
-                       seconds=time.perf_counter() - t0)
+                       seconds=time.perf_counter() - t0, spread=[0.0])
     y = x
     if x.shape[1] > components and n > components:
         y = PCA(n_components=components, random_state=seed, svd_solver="randomized").fit_transform(x)
-    curve = []
+    curve, spreads = [], []
     chosen = ladder[-1]
     for k in ladder:
         if k == 1:
@@ -147,11 +225,12 @@ def choose_k(feats: np.ndarray, k_min: int, k_max: int, tolerance: float, subsam
             m = x[labels == c]
             within += float(np.sum((m - m.mean(axis=0)) ** 2))
         curve.append(within / total)
-        if curve[-1] <= tolerance:
+        spreads.append(float(np.sqrt(within / max(energy, TINY))))
+        if curve[-1] <= tolerance or spreads[-1] <= spread:
             chosen = k
             break
     return KChoice(k=int(chosen), ladder=ladder[:len(curve)], distortion=curve, rule=rule, subsample=n,
-                   seconds=time.perf_counter() - t0)
+                   seconds=time.perf_counter() - t0, spread=spreads)
 
 
 def constrained_least_squares(a: np.ndarray, b: np.ndarray, ridge: float = 0.0) -> np.ndarray:

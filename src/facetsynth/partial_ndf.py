@@ -49,13 +49,31 @@ def projected_area_table(ndf: np.ndarray, grid: DirectionGrid, k: np.ndarray) ->
     return ndf.reshape(ndf.shape[0], -1) @ kernel
 
 
-def shadowing_table(ndf: np.ndarray, grid: DirectionGrid, constrained: bool) -> np.ndarray:
+SHADOWING_METHODS = ("constrained", "unconstrained", "clipped")
+
+
+def shadowing_method(method: bool | str) -> str:
+    """The name of a shadowing method; True and False (the former flag) mean constrained and unconstrained."""
+    name = {True: "constrained", False: "unconstrained"}.get(method, method) if isinstance(method, bool) else method
+    if name not in SHADOWING_METHODS:
+        raise ValueError(f"partial NDF shadowing must be one of {', '.join(SHADOWING_METHODS)}, not {method!r}")
+    return name
+
+
+def shadowing_table(ndf: np.ndarray, grid: DirectionGrid, constrained: bool | str) -> np.ndarray:
     """S(k) on SHADOWING_GRID (P, Ts, Fs) from a partial NDF (eq. 5).
 
-    D is normalised to integral of (n . h) D = 1 over its cells. With
-    ``constrained``, S at each elevation is its minimum over azimuth (sec. 5.1).
+    D is normalised to integral of (n . h) D = 1 over its cells. The method
+    (``constrained``, :func:`shadowing_method`): "constrained" (True), S at
+    each elevation is its minimum over azimuth (sec. 5.1); "unconstrained"
+    (False), eq. 5 on the partial NDF as it is (Ngan et al. 2005);
+    "clipped", that S capped at 1, the bound a complete normalised NDF obeys.
+    The partial NDF's normalisation over only the cells it covers makes D,
+    hence A(k), too large where the missing cells matter, so the constrained
+    minimum comes out low (docs/decisions.md, "Partial NDF bias").
     A point with an all-zero NDF gets S = 1.
     """
+    method = shadowing_method(constrained)
     k = SHADOWING_GRID.directions.reshape(-1, 3)
     norm = grid.integrate(ndf * grid.directions[..., 2])
     normalised = np.divide(ndf, norm[:, None, None], out=np.zeros_like(ndf), where=norm[:, None, None] > 0)
@@ -65,8 +83,10 @@ def shadowing_table(ndf: np.ndarray, grid: DirectionGrid, constrained: bool) -> 
     # (sec. 5.1), kept unclipped; the cap only keeps the numbers finite.
     s = np.clip(np.divide(k[:, 2], area, out=np.ones_like(area), where=area > 1e-12), 0.0, 1e3)
     s = s.reshape((-1,) + SHADOWING_GRID.shape)
-    if constrained:
+    if method == "constrained":
         s = np.broadcast_to(s.min(axis=-1, keepdims=True), s.shape)
+    elif method == "clipped":
+        s = np.minimum(s, 1.0)
     return np.ascontiguousarray(s)
 
 
@@ -99,10 +119,23 @@ def fit(specular_slice: np.ndarray, coverage: np.ndarray, view: np.ndarray, grid
     rho_s = grid.lookup(specular_slice, i)                            # (P, T*F)
     cover = grid.lookup(coverage, i)
     w = np.where(usable, confidence(i_z) * np.clip(cover, 0.0, 1.0), 0.0)
-    support = w > 0
-    numerator = np.where(support, 4.0 * rho_s * i_z * o[:, 2:3], 0.0)
-    shape = (n_points,) + grid.shape
+    numerator = 4.0 * rho_s * i_z * o[:, 2:3]
+    return iterate(numerator, w, i, o, grid, constrained, tol, max_iter)
 
+
+def iterate(numerator: np.ndarray, w: np.ndarray, i: np.ndarray, o: np.ndarray, grid: DirectionGrid,
+            constrained: bool = True, tol: float = 1e-3, max_iter: int = 30) -> PartialNDF:
+    """Eqs. 11 and 5 alternated from S = 1: D(h) = numerator(h) / (S(i(h)) S(o)) on the support W > 0.
+
+    ``numerator`` (P, T*F): 4 rho~_s(i(h)) (i(h) . n)(o . n) per half-vector
+    cell; ``w`` (P, T*F) the confidence W; ``i`` (P, T*F, 3) the light
+    direction of each cell, ``o`` (P, 3) the view. Stops when the largest
+    relative change of D is below ``tol`` (or after ``max_iter``).
+    """
+    n_points = numerator.shape[0]
+    support = w > 0
+    numerator = np.where(support, numerator, 0.0)
+    shape = (n_points,) + grid.shape
     d = numerator.reshape(shape)                                       # S = 1: the starting point
     iterations = np.zeros(n_points, int)
     active = np.ones(n_points, bool)
@@ -117,6 +150,56 @@ def fit(specular_slice: np.ndarray, coverage: np.ndarray, view: np.ndarray, grid
         if not active.any():
             break
     return PartialNDF(ndf=d, confidence=w.reshape(shape), iterations=iterations, converged=~active)
+
+
+def pooled_fit(specular: np.ndarray, valid: np.ndarray, points: np.ndarray, views: np.ndarray,
+               lights: np.ndarray, member_confidence: np.ndarray, view: np.ndarray, grid: DirectionGrid,
+               constrained: bool = True, grazing_deg: float = 80.0, tol: float = 1e-3,
+               max_iter: int = 30, rotation: np.ndarray | None = None) -> PartialNDF:
+    """One partial NDF from the eq. 8 samples of several points of one material (a cluster's members).
+
+    Each point's samples lie at its own half vectors h_q = (i_q + o) / |i_q + o|,
+    shifted against every other point's by where it sits under the lights.
+    Pooled, they sample the shared NDF far more densely than the lights do
+    from any one point (a glossy lobe at the paper's 480 lights is one or
+    two lights wide): the numerator of eq. 11, 4 rho~_s (i.n)(o.n), is
+    averaged over the samples in each half-vector cell (a bilinear splat
+    would blur the peak by a cell; push-pull (Gortler et al. 1996) fills the
+    cells no sample falls in) and eqs.
+    11 and 5 are iterated for the representative's view ``view`` (S is smooth
+    in h; the members' views differ by a few degrees). ``specular`` (M, F)
+    rho~_s, ``valid`` (M, F), ``points``/``views`` (M, 3), ``lights`` (F, 3),
+    ``member_confidence`` (M, T, F): the members' W, whose mean is the pooled W.
+    ``rotation`` (M,): each member's frame against the representative's
+    (:func:`facetsynth.cluster.relative_rotation`, D_x(h) = D(R(phi) h)):
+    its samples are turned into the representative's frame first.
+    Returns a PartialNDF of one point.
+    """
+    from .pushpull import push_pull
+    from .render import light_geometry
+
+    wi, _ = light_geometry(points[:, None, :], lights[None])                   # (M, F, 3)
+    o = np.broadcast_to(views[:, None, :], wi.shape)
+    h = wi + o
+    h = h / np.maximum(np.linalg.norm(h, axis=-1, keepdims=True), 1e-12)
+    w_members = np.asarray(member_confidence, float)
+    if rotation is not None:
+        c, s = np.cos(rotation)[:, None], np.sin(rotation)[:, None]
+        h = np.stack([c * h[..., 0] - s * h[..., 1], s * h[..., 0] + c * h[..., 1], h[..., 2]], axis=-1)
+        w_members = np.stack([grid.rotate(wm, -phi) for wm, phi in zip(w_members, rotation)])
+    use = np.asarray(valid, bool) & (wi[..., 2] > np.cos(np.radians(grazing_deg)))
+    value = 4.0 * np.asarray(specular, float) * np.clip(wi[..., 2], 0.0, None) * np.clip(o[..., 2], 0.0, None)
+    t, p = grid.coordinates(h[use])
+    cell = (np.clip(np.rint(t), 0, grid.n_theta - 1).astype(np.intp) * grid.n_phi
+            + np.rint(p).astype(np.intp) % grid.n_phi)
+    size = grid.n_theta * grid.n_phi
+    value_sum = np.bincount(cell, value[use], minlength=size).reshape((1,) + grid.shape)
+    count = np.bincount(cell, minlength=size).astype(float).reshape((1,) + grid.shape)
+    numerator = push_pull(value_sum, count).reshape(1, -1)
+    o_ref = np.asarray(view, float).reshape(1, 3)
+    i = reflect(o_ref[:, None, :], grid.directions.reshape(1, -1, 3))
+    w = np.mean(w_members, axis=0).reshape(1, -1)
+    return iterate(numerator, w, i, o_ref, grid, constrained, tol, max_iter)
 
 
 def fresnel_cosine(view: np.ndarray, grid: DirectionGrid) -> np.ndarray:

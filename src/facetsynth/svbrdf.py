@@ -52,6 +52,12 @@ FORMAT_VERSION = 1
 CHUNK = 1 << 16   # directions evaluated per block: bounds eval's memory
 
 
+def turn(d: np.ndarray, phi: np.ndarray) -> np.ndarray:
+    """Directions (N, 3) turned about the normal by phi (N,) radians: R(phi) d, azimuth + phi."""
+    c, s = np.cos(phi), np.sin(phi)
+    return np.stack([c * d[..., 0] - s * d[..., 1], s * d[..., 0] + c * d[..., 1], d[..., 2]], axis=-1)
+
+
 def _bilinear(grid: DirectionGrid, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Flat cell indices (N, 4) and bilinear weights (N, 4) of directions d (N, 3) on ``grid``.
 
@@ -94,10 +100,12 @@ class SVBRDF:
     info: dict[str, Any] = field(default_factory=dict)
     eta_lo: np.ndarray | None = None         # (P,) 95 % interval of eta (the point's material), if known
     eta_hi: np.ndarray | None = None
+    rotation: np.ndarray | None = None       # (P,) radians: D(x, h) = sum_k w_k D_k(R(phi_x) h) (eq. 13's turn)
 
     def __post_init__(self):
         p = self.plane.rows * self.plane.cols
-        for name, shape in (("kd", (p, 3)), ("ks", (p, 3)), ("eta", (p,)), ("eta_lo", (p,)), ("eta_hi", (p,))):
+        for name, shape in (("kd", (p, 3)), ("ks", (p, 3)), ("eta", (p,)), ("eta_lo", (p,)), ("eta_hi", (p,)),
+                            ("rotation", (p,))):
             if getattr(self, name) is not None and getattr(self, name).shape != shape:
                 raise ValueError(f"SVBRDF {name} has shape {getattr(self, name).shape}, expected {shape}")
         if self.neighbours.shape != self.weights.shape or self.neighbours.shape[0] != p:
@@ -146,7 +154,9 @@ class SVBRDF:
                        neighbours=tensor("neighbours.npy").astype(np.intp), weights=tensor("weights.npy"),
                        representatives=tensor("representatives.npy"),
                        eta_fitted=None if fitted is None else fitted.reshape(-1) > 0.5,
-                       shadowing_grid=sgrid, info=meta, eta_lo=interval["eta_lo"], eta_hi=interval["eta_hi"])
+                       shadowing_grid=sgrid, info=meta, eta_lo=interval["eta_lo"], eta_hi=interval["eta_hi"],
+                       rotation=(tensor("rotation.npy").astype(np.float64) if (path / "rotation.npy").is_file()
+                                 else None))
         except ValueError as exc:
             raise InputError(path, f"inconsistent SVBRDF folder ({exc})") from None
 
@@ -170,12 +180,15 @@ class SVBRDF:
         write_npy(path / "representatives.npy", np.asarray(reps, np.int64))
         write_npy(path / "neighbours.npy", self.neighbours.astype(np.int32))
         write_npy(path / "weights.npy", self.weights.astype(np.float32))
+        if self.rotation is not None:
+            write_npy(path / "rotation.npy", self.rotation.astype(np.float32))
         meta = {"version": FORMAT_VERSION, "units": "m", "model": "paper 002 eq. 6 with eq. 18 NDF mixtures",
                 "plane_grid": self.plane.to_dict(), "grid": self.grid.to_dict(),
                 "shadowing_grid": self.shadowing_grid.to_dict(),
                 "files": {"kd": "kd.exr", "ks": "ks.exr", "eta": "eta.exr", "ndf": "ndf.npy",
                           "projected_area": "projected_area.npy", "representatives": "representatives.npy",
-                          "neighbours": "neighbours.npy", "weights": "weights.npy"},
+                          "neighbours": "neighbours.npy", "weights": "weights.npy",
+                          **({"rotation": "rotation.npy"} if self.rotation is not None else {})},
                 "loader": "facetsynth.SVBRDF.load(path).eval(points, wi, wo)"}
         meta.update({k: v for k, v in self.info.items() if k not in meta})
         if provenance:
@@ -200,8 +213,11 @@ class SVBRDF:
         return row * self.plane.cols + col, inside
 
     def mixture(self, table: np.ndarray, grid: DirectionGrid, index: np.ndarray, d: np.ndarray) -> np.ndarray:
-        """sum_k w(x, k) table[j(x, k)](d) for points ``index`` (N,) and directions d (N, 3); ``table`` is
-        (R, cells of ``grid``), one flattened table per representative."""
+        """sum_k w(x, k) table[j(x, k)](R(phi_x) d) for points ``index`` (N,) and directions d (N, 3); ``table``
+        is (R, cells of ``grid``), one flattened table per representative; phi_x the point's ``rotation``
+        (a material whose frame turns across the sample: a representative and a per-point turn, eq. 13)."""
+        if self.rotation is not None:
+            d = turn(d, self.rotation[index])
         cells, bw = _bilinear(grid, d)
         out = np.zeros(len(index))
         for k in range(self.neighbours.shape[1]):
@@ -231,7 +247,10 @@ class SVBRDF:
             use = w != 0
             if use.any():
                 out[use] += w[use, None] * self._ndf_flat[self.neighbours[index[use], k]]
-        return np.maximum(out, 0.0).reshape((index.size,) + self.grid.shape)
+        out = np.maximum(out, 0.0).reshape((index.size,) + self.grid.shape)
+        if self.rotation is not None:
+            out = np.stack([self.grid.rotate(table, phi) for table, phi in zip(out, self.rotation[index])])
+        return out
 
     def area_at(self, index: np.ndarray, k: np.ndarray) -> np.ndarray:
         """A(x, k) of eq. 5 (the mixture's projected area, floored at 1e-6) at points (N,), directions (N, 3)."""

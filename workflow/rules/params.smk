@@ -13,6 +13,7 @@ rule params:
         representatives="results/{sample}/cluster/representatives.npy",
         neighbours="results/{sample}/cluster/neighbours.npy",
         weights="results/{sample}/cluster/weights.npy",
+        rotation="results/{sample}/cluster/rotation.npy",
         ndf="results/{sample}/synthesize/ndf.npy",
         fresnel_cosine="results/{sample}/synthesize/fresnel_cosine.npy",
         synthesis_confidence="results/{sample}/synthesize/confidence.npy",

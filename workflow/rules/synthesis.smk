@@ -9,14 +9,20 @@ rule cluster:
         ndf="results/{sample}/partial_ndf/ndf.npy",
         confidence="results/{sample}/partial_ndf/confidence.npy",
         grid="results/{sample}/resample/grid.json",
+        specular="results/{sample}/separate/specular.npy",
+        valid="results/{sample}/separate/valid.npy",
     output:
         labels="results/{sample}/cluster/labels.npy",
         representatives="results/{sample}/cluster/representatives.npy",
         neighbours="results/{sample}/cluster/neighbours.npy",
         weights="results/{sample}/cluster/weights.npy",
+        rep_ndf="results/{sample}/cluster/representative_ndf.npy",
+        rep_confidence="results/{sample}/cluster/representative_confidence.npy",
+        rotation="results/{sample}/cluster/rotation.npy",
         metrics="results/{sample}/cluster/metrics.json",
     params:
         seed=config["seed"],
+        partial_ndf=config["partial_ndf"],   # eqs. 11 and 5 for the pooled representative partial NDFs
         **config["cluster"],
     log:
         "results/{sample}/logs/cluster.log",
@@ -46,6 +52,8 @@ rule synthesize:
         confidence="results/{sample}/partial_ndf/confidence.npy",
         grid="results/{sample}/resample/grid.json",
         representatives="results/{sample}/cluster/representatives.npy",
+        rep_ndf="results/{sample}/cluster/representative_ndf.npy",
+        rep_confidence="results/{sample}/cluster/representative_confidence.npy",
         neighbours="results/{sample}/cluster/neighbours.npy",
         weights="results/{sample}/cluster/weights.npy",
     output:

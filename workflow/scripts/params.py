@@ -3,7 +3,7 @@ from facetsynth.stages.runner import run_stage
 
 i, p = snakemake.input, snakemake.params
 run_stage(snakemake, params.run, geometry=i.geometry, kd_path=i.kd, specular=i.specular, valid=i.valid,
-          colour=i.colour, representatives=i.representatives, neighbours=i.neighbours, weights=i.weights,
+          colour=i.colour, representatives=i.representatives, neighbours=i.neighbours, weights=i.weights, rotation=i.rotation,
           ndf=i.ndf, fresnel_cosine=i.fresnel_cosine,
           synthesis_confidence=i.synthesis_confidence, grid_path=i.grid, svbrdf_out=snakemake.output.svbrdf,
           metrics_out=snakemake.output.metrics,

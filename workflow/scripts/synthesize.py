@@ -4,7 +4,8 @@ from facetsynth.stages.runner import run_stage
 p = snakemake.params
 run_stage(snakemake, synthesize.run, geometry=snakemake.input.geometry, ndf=snakemake.input.ndf,
           confidence=snakemake.input.confidence, grid_path=snakemake.input.grid,
-          representatives=snakemake.input.representatives, neighbours=snakemake.input.neighbours,
+          representatives=snakemake.input.representatives,
+          rep_ndf=snakemake.input.rep_ndf, rep_confidence=snakemake.input.rep_confidence, neighbours=snakemake.input.neighbours,
           weights=snakemake.input.weights, ndf_out=snakemake.output.ndf,
           confidence_out=snakemake.output.confidence, cosine_out=snakemake.output.fresnel_cosine,
           grid_out=snakemake.output.grid,

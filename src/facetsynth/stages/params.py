@@ -61,7 +61,8 @@ def mixture(ks_rep: np.ndarray, neighbours: np.ndarray, weights: np.ndarray) -> 
 
 def build_model(ndf: np.ndarray, grid: DirectionGrid, neighbours: np.ndarray, weights: np.ndarray,
                 kd: np.ndarray, colour: np.ndarray, capture: RectifiedCapture,
-                representatives: np.ndarray | None = None) -> tuple[SVBRDF, np.ndarray, np.ndarray]:
+                representatives: np.ndarray | None = None,
+                rotation: np.ndarray | None = None) -> tuple[SVBRDF, np.ndarray, np.ndarray]:
     """The SVBRDF before eta: ks (sec. 5.4), normalised NDFs, A(k) (eq. 5), per-point mixtures.
 
     Returns (model with eta = default and ks in the NDF's scale times colour,
@@ -79,7 +80,7 @@ def build_model(ndf: np.ndarray, grid: DirectionGrid, neighbours: np.ndarray, we
     model = SVBRDF(plane=capture.grid, grid=grid, kd=kd, ks=ks_pt[:, None] * colour,
                    eta=np.full(len(ks_pt), fit.ETA_DEFAULT), ndf=normalised.astype(np.float32),
                    area=area.astype(np.float32), neighbours=nb, weights=mix,
-                   representatives=representatives, eta_fitted=np.zeros(len(ks_pt), bool))
+                   representatives=representatives, eta_fitted=np.zeros(len(ks_pt), bool), rotation=rotation)
     return model, ks_pt, ks_rep
 
 
@@ -216,8 +217,8 @@ def ndf_spread(model: SVBRDF, truth: MaterialMaps, names: list[str], visible: np
                max_points: int = 2000) -> tuple[dict, dict]:
     """The spread of the fitted per-point NDFs within each homogeneous truth region.
 
-    For every truth region (``truth.region`` >= 0; only points whose truth is
-    analytic eq. 6, ``MaterialMaps.analytic``, where the maps have it) whose frame
+    For every truth region (``truth.region`` >= 0, any kind of material: the
+    spread needs only the region, not its true NDF) whose frame
     azimuth is the same at all its visible points (within 1e-6 rad: one NDF
     everywhere), up to ``max_points`` points (evenly strided) get their final
     normalised eq. 18 NDF on the model's grid (:meth:`SVBRDF.point_ndf`), and
@@ -227,16 +228,12 @@ def ndf_spread(model: SVBRDF, truth: MaterialMaps, names: list[str], visible: np
     region whose frame turns (a polar frame: one material at many rotations,
     its NDFs should differ) is skipped and said so.
     """
-    analytic = getattr(truth, "analytic", None)
     spread, skipped = {}, {}
     for r in np.unique(truth.region[truth.region >= 0]):
         name = names[r] if r < len(names) else f"region{int(r)}"
-        sel = visible & (truth.region == r)
-        if analytic is not None:
-            sel &= np.asarray(analytic, bool).reshape(sel.shape)
-        index = np.flatnonzero(sel)
+        index = np.flatnonzero(visible & (truth.region == r))
         if index.size == 0:
-            skipped[name] = "no visible point with analytic truth"
+            skipped[name] = "no visible point"
             continue
         turn = np.angle(np.exp(1j * (truth.phi_frame[index] - truth.phi_frame[index[0]])))
         if np.abs(turn).max() > 1e-6:
@@ -259,7 +256,8 @@ def run(geometry: str | Path, kd_path: str | Path, specular: str | Path, valid: 
         eta_min: float = fit.ETA_BOUNDS[0], eta_max: float = fit.ETA_BOUNDS[1], eta_default: float = fit.ETA_DEFAULT,
         min_samples: int = 8,
         max_std: float = 0.15, min_ndf_fraction: float = 0.05, max_split_difference: float = 0.1,
-        material_tolerance: float = 0.25, max_eta_interval: float = 0.2) -> None:
+        material_tolerance: float = 0.25, max_eta_interval: float = 0.2,
+        rotation: str | Path | None = None) -> None:
     """Fit the remaining parameters and write the SVBRDF folder ``svbrdf_out`` and the metrics.
 
     Eq. 11 assumes F = 1, so the synthesized NDFs carry a Fresnel factor whose
@@ -285,7 +283,8 @@ def run(geometry: str | Path, kd_path: str | Path, specular: str | Path, valid: 
     col = np.asarray(_load(colour, n, "specular colour"), float)
     spec, ok = _load(specular, n, "specular samples"), _load(valid, n, "sample validity")
 
-    carrying, ks_pt, ks_rep = build_model(table, grid, nb, w18, kd, col, capture, reps)
+    turn = None if rotation is None else np.asarray(_load(rotation, n, "rotation"), float)
+    carrying, ks_pt, ks_rep = build_model(table, grid, nb, w18, kd, col, capture, reps, turn)
     log.info("%d representatives, ks median %.4g; %d points", len(reps), float(np.median(ks_rep)), n)
     covered = np.asarray(_load(synthesis_confidence, len(reps), "the synthesis confidence"), float) > SUPPORT
     samples = grazing_fresnel(carrying, ks_pt, capture, spec, ok, grazing_deg, min_ndf_fraction, cosine, covered)
@@ -297,7 +296,7 @@ def run(geometry: str | Path, kd_path: str | Path, specular: str | Path, valid: 
                                                           max_eta_interval)
     # the NDFs without the Fresnel factor they carry: D = D_c / F(cosine, eta) (eqs. 3, 11)
     free = table / np.maximum(fresnel(cosine, eta_rep[:, None, None]), 1e-6)
-    model, _, _ = build_model(free, grid, nb, w18, kd, col, capture, reps)
+    model, _, _ = build_model(free, grid, nb, w18, kd, col, capture, reps, turn)
     model.eta, model.eta_fitted = eta, fitted & capture.visible
     owner = nb[np.arange(n), np.argmax(w18, axis=1)]       # a point's interval: its material's (as eta_fitted)
     model.eta_lo, model.eta_hi = interval_rep[owner, 0], interval_rep[owner, 1]
@@ -351,7 +350,7 @@ def run(geometry: str | Path, kd_path: str | Path, specular: str | Path, valid: 
         medians = [v["median"] for v in spread.values() if v["median"] is not None]
         metrics["ndf_spread_max_median"] = float(max(medians)) if medians else None
         metrics["ndf_spread_definition"] = (
-            "per truth region with one frame everywhere (points with analytic truth only): each point's final "
+            "per truth region with one frame everywhere (any material kind): each point's final "
             "normalised eq. 18 NDF on the model's grid against the region's mean NDF, relative L2 solid-angle "
             "weighted over the whole hemisphere grid; median and 90th percentile over <= 2000 evenly strided "
             "points; ndf_spread_max_median = the largest median")

@@ -20,7 +20,7 @@ METRIC_POINTS = 1024  # points on which the accuracy against the truth is measur
 
 def run(geometry: str | Path, slice_path: str | Path, coverage_path: str | Path, grid_path: str | Path,
         ndf_out: str | Path, confidence_out: str | Path, metrics_out: str | Path, per_point_view: bool = False,
-        constrained: bool = True, grazing_deg: float = 80.0, tol: float = 1e-3, max_iter: int = 30) -> None:
+        constrained: bool | str = True, grazing_deg: float = 80.0, tol: float = 1e-3, max_iter: int = 30) -> None:
     """Fit every point's partial NDF, in tiles of points over memory-mapped tensors.
 
     For virtual captures, accuracy is measured against
@@ -57,7 +57,7 @@ def run(geometry: str | Path, slice_path: str | Path, coverage_path: str | Path,
         del ndf, weight
 
     metrics = {"ground_truth": truth is not None, "points": n, "grid": grid.to_dict(),
-               "method": "constrained" if constrained else "unconstrained",
+               "method": pndf.shadowing_method(constrained),
                "view": "per_point" if per_point_view else "centre",
                "iterations_median": float(np.median(iterations)), "iterations_max": int(iterations.max()),
                "converged_fraction": float(converged.mean()), "grazing_deg": grazing_deg, "tolerance": tol}
@@ -77,17 +77,24 @@ def scored_points(capture: RectifiedCapture, truth) -> np.ndarray:
     return scored
 
 
+VARIANTS = {"constrained": (True, "constrained"), "unconstrained": (True, "unconstrained"),
+            "clipped": (True, "clipped"), "centre_view": (False, "constrained")}
+
+
 def variant_errors(geometry: str | Path, slice_path: str | Path, coverage_path: str | Path, grid_path: str | Path,
-                   variants: dict[str, tuple[bool, bool]], grazing_deg: float = 80.0, tol: float = 1e-3,
-                   max_iter: int = 30) -> dict[str, float]:
-    """Median relative L2 error of each variant (per_point_view, constrained) on the scored points of a
-    virtual capture's resampled data: how the paper's choices (sec. 5.1, Fig. 5) compare on a scene."""
+                   variants: dict[str, tuple[bool, bool | str]] = VARIANTS, grazing_deg: float = 80.0,
+                   tol: float = 1e-3, max_iter: int = 30) -> dict[str, float | None]:
+    """Median relative L2 error of each variant (per_point_view, shadowing method) on the scored points of a
+    virtual capture's resampled data: how the paper's choices (sec. 5.1, Fig. 5) compare on a scene. A scene
+    without analytic truth (measured BRDFs only) has no scored point: every variant is None."""
     capture = RectifiedCapture.load(geometry)
     grid = DirectionGrid.from_dict(read_json(grid_path))
     truth = capture.truth()
     if truth is None:
         raise ValueError(f"{geometry}: variants are compared against the truth, and this capture has none")
     index = np.flatnonzero(scored_points(capture, truth))
+    if index.size == 0:
+        return {name: None for name in variants}
     s = np.asarray(np.load(slice_path, mmap_mode="r")[index], float)
     c = np.asarray(np.load(coverage_path, mmap_mode="r")[index], float)
     maps = truth.take(index)

@@ -1,4 +1,9 @@
-"""Stage ``resample``: push-pull of each point's specular samples onto the light-direction grid (sec. 4).
+"""Stage ``resample``: each point's specular samples onto the light-direction grid (sec. 4).
+
+Linear interpolation over one triangulation of the lights' positions
+(:mod:`facetsynth.lightplane`: the same at every point, so two points of one
+material get the same slice wherever they sit under the LEDs), push-pull
+(Gortler et al. 1996, as the paper) only beyond the lights' hull.
 
 The grid's resolution follows the sharpness of the measured lobes
 (:mod:`facetsynth.sharpness`): it is decided here, from the data, and
@@ -17,7 +22,8 @@ from ..coverage import LightFootprint
 from ..fileio import atomic_path, write_json
 from ..grid import DirectionGrid
 from ..microfacet import half_vector
-from ..pushpull import push_pull, splat
+from ..lightplane import LightTriangulation
+from ..pushpull import push_pull
 from ..render import light_geometry
 from ..sharpness import grid_resolution, lobe_widths
 from .common import RectifiedCapture, tiles
@@ -67,6 +73,8 @@ def run(geometry: str | Path, specular: str | Path, valid: str | Path, slice_out
     footprint = LightFootprint.from_lights(capture.light_positions)
     log.info("lights: %d, spacing %.1f mm, plane z = %.1f mm", len(capture.light_positions),
              1e3 * footprint.spacing, 1e3 * footprint.height)
+    lights = LightTriangulation.from_lights(capture.light_positions)
+    directions = grid.directions.reshape(-1, 3)
     points, n = capture.points, capture.n_points
     colour = np.ones((n, 3))
     with atomic_path(slice_out, suffix=".npy") as tmp_slice, atomic_path(coverage_out, suffix=".npy") as tmp_cov:
@@ -74,9 +82,9 @@ def run(geometry: str | Path, specular: str | Path, valid: str | Path, slice_out
         cover = np.lib.format.open_memmap(tmp_cov, mode="w+", dtype=np.float16, shape=(n,) + grid.shape)
         for tile in tqdm(list(tiles(n)), desc="resample", unit="tile"):
             s = np.asarray(spec[tile], float)
-            wi, _ = light_geometry(points[tile][:, None, :], capture.light_positions[None])
-            value_sum, weight_sum = splat(grid, wi, s.mean(axis=-1), np.asarray(ok[tile]))
-            table[tile] = push_pull(value_sum, weight_sum)
+            value, defined = lights.interpolate(s.mean(axis=-1), ok[tile], points[tile], directions)
+            table[tile] = push_pull((value * defined).reshape((-1,) + grid.shape),
+                                    defined.reshape((-1,) + grid.shape).astype(float))
             cover[tile] = footprint.coverage(points[tile], grid.directions.reshape(-1, 3)).reshape((-1,) + grid.shape)
             total = np.where(ok[tile][..., None], s, 0.0).sum(axis=1)
             mean = total.mean(axis=1, keepdims=True)

@@ -41,7 +41,8 @@ def run(geometry: str | Path, ndf: str | Path, confidence: str | Path, grid_path
         max_exemplars: int = 4096, ann_neighbors: int = 30, ann_epsilon: float = 0.2, fill_overlap: float | None = None,
         extend_rings: bool = False, isotropic_threshold: float = 0.13, kd: str | Path | None = None,
         material_tolerance: float = 0.25, seed: int = 0,
-        rotations: Sequence[tuple[str | Path, str | Path, str | Path]] = ()) -> None:
+        rotations: Sequence[tuple[str | Path, str | Path, str | Path]] = (),
+        rep_ndf: str | Path | None = None, rep_confidence: str | Path | None = None) -> None:
     """Complete every representative's NDF; write ndf (R, T, F), its W before fill, the cosine of the
     Fresnel factor each cell carries (R, T, F; see :func:`facetsynth.synthesis.complete`), grid, metrics.
 
@@ -85,7 +86,10 @@ def run(geometry: str | Path, ndf: str | Path, confidence: str | Path, grid_path
         sources.append((rot_d, rot_w, rot_capture.view_directions(True), exemplar_pool(rot_capture, budget)))
     ex_index = np.concatenate([pool] + [np.full(src[3].size, -1) for src in sources[1:]])   # -1: another capture
     ex_view = np.concatenate([src[2][src[3]] for src in sources])
-    rep_d, rep_w = np.asarray(d_all[reps], float), np.asarray(w_all[reps], float)
+    if rep_ndf is None:      # the representatives' own partial NDFs
+        rep_d, rep_w = np.asarray(d_all[reps], float), np.asarray(w_all[reps], float)
+    else:                    # pooled from their clusters' members (stage cluster)
+        rep_d, rep_w = np.load(rep_ndf).astype(float), np.load(rep_confidence).astype(float)
     stat = syn.anisotropy(rep_d, rep_w, grid)
     if kd is None:
         material = np.arange(len(reps))
@@ -135,7 +139,7 @@ def run(geometry: str | Path, ndf: str | Path, confidence: str | Path, grid_path
             if isotropic[i]:
                 out.append(syn.complete_isotropic(rep_d[i], rep_w[i], grid, target, view=view[r]))
                 continue
-            out.append(syn.complete(np.asarray(d_all[r], float), np.asarray(w_all[r], float), spectra, ex_d, ex_w,
+            out.append(syn.complete(rep_d[i], rep_w[i], spectra, ex_d, ex_w,
                                     grid, target, search=index, overlap_range=tuple(overlap),
                                     max_iterations=max_iterations, target_coverage=target_coverage,
                                     max_relative_error=max_relative_error, candidates_per_region=candidates,
