@@ -27,6 +27,8 @@ from .common import RectifiedCapture, tiles
 log = logging.getLogger(__name__)
 
 POOL_MEMBERS = 2048  # members (evenly strided) whose samples a representative's partial NDF pools
+ONE_MATERIAL = 0.25  # turned clusters whose pooled NDFs, turned onto each other, differ by less than this
+                     # (eq. 15, relative) are one material: one representative, each point turned onto it
 TURN_GAIN = 0.8      # a cluster is one material turning across the sample when turning its points onto its
 TURN_SPREAD = 0.5    # representative lowers their eq. 15 distance by 20 % (median) and their turns spread over
                      # more than half a sector (standard deviation): then each point is that representative turned
@@ -112,16 +114,33 @@ def run(geometry: str | Path, ndf: str | Path, confidence: str | Path, grid_path
         pooled = pooled_representatives(capture, visible, result, d_all, w_all, np.load(specular, mmap_mode="r"),
                                         np.load(valid, mmap_mode="r"), grid, constrained, grazing_deg, tol, max_iter)
     rep_d, rep_w, _ = cluster.coarse(pooled.ndf, pooled.confidence, grid)
+    if domain is not None:      # eq. 18 compared on the cells every point sees, as k-means (the domain is the rig's)
+        w, rep_w = np.broadcast_to(domain, w.shape).astype(float), np.broadcast_to(domain, rep_w.shape).astype(float)
     nbr, wts, lam = cluster.interpolation_weights(d, w, rep_d, rep_w, cgrid, k=neighbours, radius=radius,
                                                   ridge=ridge)
     turns = point_turns(d_all, w_all, visible, result.labels, pooled, grid)
     turned = np.flatnonzero(turns.turned)
     members = np.isin(result.labels, turned)
-    nbr[members], wts[members] = result.labels[members, None], 0.0
+    owner, theta = np.arange(reps.size), np.zeros(reps.size)
+    if turned.size and specular is not None:
+        owner, theta = one_material_turned(pooled, turned, result.labels, grid)
+        for r in np.unique(owner[turned]):
+            group = np.flatnonzero(np.isin(result.labels, np.flatnonzero(owner == r)))
+            group = group[:: max(1, int(np.ceil(group.size / POOL_MEMBERS)))]
+            rows = visible[group]
+            fit = pndf.pooled_fit(np.asarray(np.load(specular, mmap_mode="r")[rows], float).mean(axis=-1),
+                                  np.asarray(np.load(valid, mmap_mode="r")[rows]), capture.points[rows],
+                                  capture.view_directions(True)[rows], capture.light_positions,
+                                  np.asarray(w_all[rows], float), capture.view_directions(True)[visible[reps[r]]],
+                                  grid, constrained, grazing_deg, tol, max_iter,
+                                  rotation=turns.phi[group] + theta[result.labels[group]])
+            pooled.ndf[r], pooled.confidence[r], pooled.members[r] = fit.ndf[0], fit.confidence[0], group.size
+    nbr[members], wts[members] = owner[result.labels[members], None], 0.0
     wts[members, 0] = 1.0
-    log.info("%d of %d clusters turn across the sample (%d points): each point is its representative turned "
-             "(eq. 13); turn spread per cluster (deg) %s", turned.size, reps.size, int(members.sum()),
-             np.round(np.degrees(turns.spread), 1).tolist())
+    point_turn = np.where(members, turns.phi + theta[result.labels], 0.0)
+    log.info("%d of %d clusters turn across the sample (%d points), as %d material(s): each point is its "
+             "material's representative turned (eq. 13); turn spread per cluster (deg) %s", turned.size, reps.size,
+             int(members.sum()), np.unique(owner[turned]).size, np.round(np.degrees(turns.spread), 1).tolist())
     # eq. 18 on the partial data: how well the representatives span the points
     err = np.concatenate([relative_l2(np.einsum("nk,nktp->ntp", wts[t], rep_d[nbr[t]]), d[t], w[t] > 0, cgrid)
                           for t in tiles(visible.size)])
@@ -140,7 +159,7 @@ def run(geometry: str | Path, ndf: str | Path, confidence: str | Path, grid_path
     write_npy(rep_ndf_out, pooled.ndf.astype(np.float32))
     write_npy(rep_confidence_out, pooled.confidence.astype(np.float32))
     rotation = np.zeros(n, np.float32)
-    rotation[visible] = np.where(members, turns.phi, 0.0)
+    rotation[visible] = point_turn
     write_npy(rotation_out, rotation)
     metrics = {"points": n, "visible_points": int(visible.size), "representatives": int(reps.size),
                "representatives_requested": wanted, "distinct_ndfs": int(result.distinct),
@@ -159,6 +178,7 @@ def run(geometry: str | Path, ndf: str | Path, confidence: str | Path, grid_path
                "comparison_grid": list(cgrid.shape), "spread_tolerance": spread,
                "pooled_members_median": float(np.median(pooled.members)),
                "turned_clusters": int(turned.size), "turned_points_fraction": float(members.mean()),
+               "turned_materials": int(np.unique(owner[turned]).size),
                "turn_rule": f"median eq. 15 gain < {TURN_GAIN} and turn spread > {TURN_SPREAD} sector",
                "negative_weight_fraction": float(np.mean(wts[wts != 0] < 0)) if np.any(wts != 0) else 0.0,
                "seconds": round(time.perf_counter() - t0, 2)}
@@ -191,7 +211,8 @@ def pooled_representatives(capture: RectifiedCapture, visible: np.ndarray, resul
         w_members = np.asarray(w_all[members], float)
         own = visible[rep]
         turn, gain = cluster.relative_rotation(np.asarray(d_all[members], float), w_members,
-                                               np.asarray(d_all[own], float), np.asarray(w_all[own], float), grid)
+                                               np.asarray(d_all[own], float), np.asarray(w_all[own], float), grid,
+                                               max_shift=grid.n_phi // 4)
         turning = np.median(gain) < TURN_GAIN and np.std(turn) > TURN_SPREAD * grid.d_phi
         fit = pndf.pooled_fit(np.asarray(specular[members], float).mean(axis=-1), np.asarray(valid[members]),
                               capture.points[members], views[members], capture.light_positions, w_members,
@@ -223,7 +244,7 @@ def point_turns(d_all, w_all, visible: np.ndarray, labels: np.ndarray, pooled: P
         for c in np.unique(labels[rows]):
             m = labels[rows] == c
             phi[rows[m]], gain[rows[m]] = cluster.relative_rotation(d[m], w[m], pooled.ndf[c], pooled.confidence[c],
-                                                                    grid)
+                                                                    grid, max_shift=grid.n_phi // 4)
     spread, median_gain = np.zeros(n_rep), np.ones(n_rep)
     for c in range(n_rep):
         m = labels == c
@@ -231,3 +252,32 @@ def point_turns(d_all, w_all, visible: np.ndarray, labels: np.ndarray, pooled: P
             spread[c], median_gain[c] = float(np.std(phi[m])), float(np.median(gain[m]))
     turned = (median_gain < TURN_GAIN) & (spread > TURN_SPREAD * grid.d_phi)
     return Turns(phi, spread, median_gain, turned)
+
+
+def one_material_turned(pooled: Pooled, turned: np.ndarray, labels: np.ndarray,
+                        grid: DirectionGrid) -> tuple[np.ndarray, np.ndarray]:
+    """Turned clusters that are one material at other turns: (owner (R,), theta (R,)).
+
+    Largest cluster first, each unclaimed turned cluster c is compared with the
+    reference r by eq. 15 at every turn (:func:`facetsynth.cluster.relative_rotation`
+    over the whole circle); within ONE_MATERIAL (relative) it joins r, turned
+    by theta_c: D_c(h) = D_r(R(theta_c) h). A lathe-turned disc is then one
+    representative whose members, turned back, sample its NDF at every azimuth
+    (their partial domains turned cover what one view cannot), instead of
+    clusters that each hold an arc of the turn and meet in wedges.
+    """
+    from ..synthesis import distance, rotate_tuple
+
+    owner, theta = np.arange(len(pooled.ndf)), np.zeros(len(pooled.ndf))
+    sizes = np.bincount(labels, minlength=len(pooled.ndf))
+    todo = [int(c) for c in turned[np.argsort(-sizes[turned], kind="stable")]]
+    while todo:
+        r = todo.pop(0)
+        for c in list(todo):
+            phi, _ = cluster.relative_rotation(pooled.ndf[c][None], pooled.confidence[c][None], pooled.ndf[r],
+                                               pooled.confidence[r], grid, max_shift=grid.n_phi // 2)
+            dr, wr = rotate_tuple(pooled.ndf[r], pooled.confidence[r], grid, float(phi[0] / grid.d_phi))
+            if distance(pooled.ndf[c], pooled.confidence[c], dr, wr, grid).relative <= ONE_MATERIAL:
+                owner[c], theta[c] = r, float(phi[0])
+                todo.remove(c)
+    return owner, theta

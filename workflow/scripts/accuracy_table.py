@@ -1,0 +1,44 @@
+"""The README's accuracy table (issue 13) from the validate, cluster and params records of a sample sheet.
+
+    snakemake --cores 2 --config samples=config/samples-accuracy.tsv
+    python workflow/scripts/accuracy_table.py config/samples-accuracy.tsv [results]
+
+Prints one markdown row per sample that has results: held-out relative L2 of radiance (all, and the
+specular part where the truth is eq. 6), ours against the per-point Ward baseline on the same views, the
+representatives, and the largest within-region median NDF spread.
+"""
+
+import csv
+import json
+import sys
+from pathlib import Path
+
+
+def read(path: Path) -> dict | None:
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def cell(x, digits=3) -> str:
+    return "-" if x is None else f"{x:.{digits}f}"
+
+
+def main(sheet: str, results: str = "results") -> None:
+    with open(sheet, newline="") as f:
+        rows = list(csv.DictReader(f, delimiter="\t"))
+    print("| sample | lights | held-out rel. L2, ours / Ward | specular part, ours / Ward | representatives | "
+          "NDF spread (largest region median) |")
+    print("|---|---|---|---|---|---|")
+    for row in rows:
+        base = Path(results) / row["sample"]
+        v, c, p = (read(base / s / "metrics.json") for s in ("validate", "cluster", "params"))
+        h = read(base / "hdr" / "metrics.json")
+        if v is None:
+            continue
+        print(f"| {row['sample']} | {h['frames'] if h else '-'} | {cell(v.get('heldout_rel_l2'))} / "
+              f"{cell(v.get('baseline_ward_rel_l2'))} | {cell(v.get('heldout_specular_rel_l2'))} / "
+              f"{cell(v.get('baseline_ward_specular_rel_l2'))} | {c['representatives'] if c else '-'} | "
+              f"{cell(p.get('ndf_spread_max_median') if p else None)} |")
+
+
+if __name__ == "__main__":
+    main(*sys.argv[1:])
