@@ -200,6 +200,7 @@ def run_per_point_stages(root: Path, geometry: Path, n_theta: int = 32,
          confidence_out=f["partial_ndf/confidence.npy"], metrics_out=f["partial_ndf/metrics.json"], per_point_view=True)
     st_cluster.run(geometry=geometry, ndf=f["partial_ndf/ndf.npy"], confidence=f["partial_ndf/confidence.npy"],
          grid_path=f["resample/grid.json"], specular=f["separate/specular.npy"], valid=f["separate/valid.npy"],
+         kd=f["separate/kd.exr"],
          labels_out=f["cluster/labels.npy"],
          representatives_out=f["cluster/representatives.npy"], neighbours_out=f["cluster/neighbours.npy"],
          weights_out=f["cluster/weights.npy"], rep_ndf_out=f["cluster/representative_ndf.npy"],

@@ -86,6 +86,20 @@ def relative_rotation(d: np.ndarray, w: np.ndarray, d_ref: np.ndarray, w_ref: np
     return shift * grid.d_phi, gain
 
 
+ALBEDO_WEIGHT = 1.35   # kd that differ by 25 % (params.material_tolerance) are 0.3 apart, twice cluster.spread
+
+
+def with_albedo(feats: np.ndarray, kd: np.ndarray, weight: float = ALBEDO_WEIGHT) -> np.ndarray:
+    """NDF features (N, K) with the diffuse albedo appended: weight x (log kd - its mean) x the features'
+    median norm (3 columns). eq. 15 is scale-free in D, so materials of one lobe shape and another kd
+    (the card's four papers) would otherwise be one cluster; centred, the albedo adds nothing to a
+    uniform material's spread (choose_k's sum of squares)."""
+    log_kd = np.log(np.clip(np.asarray(kd, float), 1e-3, None))
+    norm = float(np.median(np.linalg.norm(feats, axis=1))) if len(feats) else 1.0
+    extra = weight * norm * (log_kd - log_kd.mean(axis=0))
+    return np.concatenate([feats, extra.astype(feats.dtype)], axis=1)
+
+
 def features(d: np.ndarray, w: np.ndarray, grid: DirectionGrid, domain: np.ndarray | None = None) -> np.ndarray:
     """k-means features (N, T*F) float32: sqrt(W dw) D / s, s = integral of D over the domain.
 

@@ -11,6 +11,7 @@ rule cluster:
         grid="results/{sample}/resample/grid.json",
         specular="results/{sample}/separate/specular.npy",
         valid="results/{sample}/separate/valid.npy",
+        kd="results/{sample}/separate/kd.exr",
     output:
         labels="results/{sample}/cluster/labels.npy",
         representatives="results/{sample}/cluster/representatives.npy",
@@ -54,6 +55,7 @@ rule synthesize:
         representatives="results/{sample}/cluster/representatives.npy",
         rep_ndf="results/{sample}/cluster/representative_ndf.npy",
         rep_confidence="results/{sample}/cluster/representative_confidence.npy",
+        rotation="results/{sample}/cluster/rotation.npy",
         neighbours="results/{sample}/cluster/neighbours.npy",
         weights="results/{sample}/cluster/weights.npy",
     output:

@@ -19,7 +19,7 @@ from tqdm import tqdm
 
 from .. import cluster
 from .. import partial_ndf as pndf
-from ..fileio import read_json, write_json, write_npy
+from ..fileio import read_exr, read_json, write_json, write_npy
 from ..grid import DirectionGrid
 from ..partial_ndf import relative_l2
 from .common import RectifiedCapture, tiles
@@ -27,8 +27,6 @@ from .common import RectifiedCapture, tiles
 log = logging.getLogger(__name__)
 
 POOL_MEMBERS = 2048  # members (evenly strided) whose samples a representative's partial NDF pools
-ONE_MATERIAL = 0.25  # turned clusters whose pooled NDFs, turned onto each other, differ by less than this
-                     # (eq. 15, relative) are one material: one representative, each point turned onto it
 TURN_GAIN = 0.8      # a cluster is one material turning across the sample when turning its points onto its
 TURN_SPREAD = 0.5    # representative lowers their eq. 15 distance by 20 % (median) and their turns spread over
                      # more than half a sector (standard deviation): then each point is that representative turned
@@ -43,7 +41,7 @@ def run(geometry: str | Path, ndf: str | Path, confidence: str | Path, grid_path
         min_representatives: int = 1, max_representatives: int = 64, distortion: float = 0.08, spread: float = 0.15,
         scan_points: int = 2048, neighbours: int = 16, radius: float = 5.0, ridge: float = 1e-3, n_init: int = 3,
         seed: int = 0, constrained: bool = True, grazing_deg: float = 80.0, tol: float = 1e-3,
-        max_iter: int = 30) -> None:
+        max_iter: int = 30, kd: str | Path | None = None) -> None:
     """Cluster the visible points' partial NDFs; write labels, representatives, neighbours, weights.
 
     The number of representatives: ``representatives`` "auto" chooses it from
@@ -60,6 +58,9 @@ def run(geometry: str | Path, ndf: str | Path, confidence: str | Path, grid_path
     (``specular``, ``valid`` from ``separate``; eqs. 11 and 5 as in
     ``partial_ndf``: ``constrained``, ``grazing_deg``, ``tol``, ``max_iter``);
     without the samples (None) it is the representative's own partial NDF.
+    ``kd`` (``separate``'s map): points are compared by their diffuse albedo
+    too (:func:`facetsynth.cluster.with_albedo`), so that two materials of one
+    lobe shape stay two (eta and isotropy are decided per material by kd).
     """
     t0 = time.perf_counter()
     capture = RectifiedCapture.load(geometry)
@@ -76,6 +77,9 @@ def run(geometry: str | Path, ndf: str | Path, confidence: str | Path, grid_path
     log.info("features on the cells %s", "every point sees (W >= 0.6 at 97 %% of the points): %d of %d" % (
         domain.sum(), domain.size) if domain is not None else "of each point's own domain (no common one)")
     feats = cluster.features(d, w, cgrid, domain)
+    if kd is not None:
+        channels, _ = read_exr(kd)
+        feats = cluster.with_albedo(feats, channels["RGB"].reshape(n, 3)[visible])
     choice = None
     if isinstance(representatives, str) and representatives.strip() != "auto":
         try:                                  # --config passes numbers as strings
@@ -121,26 +125,12 @@ def run(geometry: str | Path, ndf: str | Path, confidence: str | Path, grid_path
     turns = point_turns(d_all, w_all, visible, result.labels, pooled, grid)
     turned = np.flatnonzero(turns.turned)
     members = np.isin(result.labels, turned)
-    owner, theta = np.arange(reps.size), np.zeros(reps.size)
-    if turned.size and specular is not None:
-        owner, theta = one_material_turned(pooled, turned, result.labels, grid)
-        for r in np.unique(owner[turned]):
-            group = np.flatnonzero(np.isin(result.labels, np.flatnonzero(owner == r)))
-            group = group[:: max(1, int(np.ceil(group.size / POOL_MEMBERS)))]
-            rows = visible[group]
-            fit = pndf.pooled_fit(np.asarray(np.load(specular, mmap_mode="r")[rows], float).mean(axis=-1),
-                                  np.asarray(np.load(valid, mmap_mode="r")[rows]), capture.points[rows],
-                                  capture.view_directions(True)[rows], capture.light_positions,
-                                  np.asarray(w_all[rows], float), capture.view_directions(True)[visible[reps[r]]],
-                                  grid, constrained, grazing_deg, tol, max_iter,
-                                  rotation=turns.phi[group] + theta[result.labels[group]])
-            pooled.ndf[r], pooled.confidence[r], pooled.members[r] = fit.ndf[0], fit.confidence[0], group.size
-    nbr[members], wts[members] = owner[result.labels[members], None], 0.0
+    nbr[members], wts[members] = result.labels[members, None], 0.0
     wts[members, 0] = 1.0
-    point_turn = np.where(members, turns.phi + theta[result.labels], 0.0)
-    log.info("%d of %d clusters turn across the sample (%d points), as %d material(s): each point is its "
-             "material's representative turned (eq. 13); turn spread per cluster (deg) %s", turned.size, reps.size,
-             int(members.sum()), np.unique(owner[turned]).size, np.round(np.degrees(turns.spread), 1).tolist())
+    point_turn = np.where(members, turns.phi, 0.0)
+    log.info("%d of %d clusters turn across the sample (%d points): each point is its representative turned "
+             "(eq. 13); turn spread per cluster (deg) %s", turned.size, reps.size, int(members.sum()),
+             np.round(np.degrees(turns.spread), 1).tolist())
     # eq. 18 on the partial data: how well the representatives span the points
     err = np.concatenate([relative_l2(np.einsum("nk,nktp->ntp", wts[t], rep_d[nbr[t]]), d[t], w[t] > 0, cgrid)
                           for t in tiles(visible.size)])
@@ -178,7 +168,6 @@ def run(geometry: str | Path, ndf: str | Path, confidence: str | Path, grid_path
                "comparison_grid": list(cgrid.shape), "spread_tolerance": spread,
                "pooled_members_median": float(np.median(pooled.members)),
                "turned_clusters": int(turned.size), "turned_points_fraction": float(members.mean()),
-               "turned_materials": int(np.unique(owner[turned]).size),
                "turn_rule": f"median eq. 15 gain < {TURN_GAIN} and turn spread > {TURN_SPREAD} sector",
                "negative_weight_fraction": float(np.mean(wts[wts != 0] < 0)) if np.any(wts != 0) else 0.0,
                "seconds": round(time.perf_counter() - t0, 2)}
@@ -254,30 +243,3 @@ def point_turns(d_all, w_all, visible: np.ndarray, labels: np.ndarray, pooled: P
     return Turns(phi, spread, median_gain, turned)
 
 
-def one_material_turned(pooled: Pooled, turned: np.ndarray, labels: np.ndarray,
-                        grid: DirectionGrid) -> tuple[np.ndarray, np.ndarray]:
-    """Turned clusters that are one material at other turns: (owner (R,), theta (R,)).
-
-    Largest cluster first, each unclaimed turned cluster c is compared with the
-    reference r by eq. 15 at every turn (:func:`facetsynth.cluster.relative_rotation`
-    over the whole circle); within ONE_MATERIAL (relative) it joins r, turned
-    by theta_c: D_c(h) = D_r(R(theta_c) h). A lathe-turned disc is then one
-    representative whose members, turned back, sample its NDF at every azimuth
-    (their partial domains turned cover what one view cannot), instead of
-    clusters that each hold an arc of the turn and meet in wedges.
-    """
-    from ..synthesis import distance, rotate_tuple
-
-    owner, theta = np.arange(len(pooled.ndf)), np.zeros(len(pooled.ndf))
-    sizes = np.bincount(labels, minlength=len(pooled.ndf))
-    todo = [int(c) for c in turned[np.argsort(-sizes[turned], kind="stable")]]
-    while todo:
-        r = todo.pop(0)
-        for c in list(todo):
-            phi, _ = cluster.relative_rotation(pooled.ndf[c][None], pooled.confidence[c][None], pooled.ndf[r],
-                                               pooled.confidence[r], grid, max_shift=grid.n_phi // 2)
-            dr, wr = rotate_tuple(pooled.ndf[r], pooled.confidence[r], grid, float(phi[0] / grid.d_phi))
-            if distance(pooled.ndf[c], pooled.confidence[c], dr, wr, grid).relative <= ONE_MATERIAL:
-                owner[c], theta[c] = r, float(phi[0])
-                todo.remove(c)
-    return owner, theta

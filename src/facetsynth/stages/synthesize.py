@@ -42,7 +42,8 @@ def run(geometry: str | Path, ndf: str | Path, confidence: str | Path, grid_path
         extend_rings: bool = False, isotropic_threshold: float = 0.13, kd: str | Path | None = None,
         material_tolerance: float = 0.25, seed: int = 0,
         rotations: Sequence[tuple[str | Path, str | Path, str | Path]] = (),
-        rep_ndf: str | Path | None = None, rep_confidence: str | Path | None = None) -> None:
+        rep_ndf: str | Path | None = None, rep_confidence: str | Path | None = None,
+        rotation: str | Path | None = None) -> None:
     """Complete every representative's NDF; write ndf (R, T, F), its W before fill, the cosine of the
     Fresnel factor each cell carries (R, T, F; see :func:`facetsynth.synthesis.complete`), grid, metrics.
 
@@ -183,7 +184,8 @@ def run(geometry: str | Path, ndf: str | Path, confidence: str | Path, grid_path
         summary["cpu_seconds"] = round(cpu, 2)     # process CPU time: comparable under a loaded machine
         if truth is not None:
             tab = np.stack([c.ndf for c in comps])
-            errs = _score(tab, nbr, wts, scored, truth, grid)
+            errs = _score(tab, nbr, wts, scored, truth, grid,
+                          None if rotation is None else np.load(rotation).astype(float))
             summary["ndf_rel_l2_median"] = float(np.median(errs)) if errs.size else None
             summary["ndf_rel_l2_p90"] = float(np.quantile(errs, 0.9)) if errs.size else None
             summary["scored_points"] = int(errs.size)
@@ -248,9 +250,10 @@ def _summary(comps, seconds, build, stalled_fraction) -> dict:
             "seconds": round(seconds, 2), "index_build_seconds": round(build, 2)}
 
 
-def _score(table, nbr, wts, scored, truth, grid) -> np.ndarray:
-    """Relative L2 (solid-angle weighted, all cells) of sum_k w_k ndf[nbr_k] against the true NDF, both
-    normalised to integral (n.h) D = 1 on the grid."""
+def _score(table, nbr, wts, scored, truth, grid, rotation=None) -> np.ndarray:
+    """Relative L2 (solid-angle weighted, all cells) of sum_k w_k ndf[nbr_k] (turned by the point's
+    ``rotation``, where the cluster stage gave one) against the true NDF, both normalised to integral
+    (n.h) D = 1 on the grid."""
     h = grid.directions
     cos = h[..., 2]
     errs = []
@@ -258,6 +261,8 @@ def _score(table, nbr, wts, scored, truth, grid) -> np.ndarray:
     for t in tiles(idx.size):
         p = idx[t]
         est = np.einsum("nk,nktp->ntp", np.asarray(wts[p], float), table[np.asarray(nbr[p])])
+        if rotation is not None:
+            est = np.stack([grid.rotate(e, phi) for e, phi in zip(est, rotation[p])])
         ref = truth.take((p, None)).ndf(h.reshape(1, -1, 3)).reshape(est.shape)
         est = est / np.where(np.abs(grid.integrate(est * cos)) > 0, grid.integrate(est * cos), 1.0)[:, None, None]
         ref = ref / grid.integrate(ref * cos)[:, None, None]
