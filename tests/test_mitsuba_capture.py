@@ -37,11 +37,13 @@ SIZE = (0.10, 0.10)
 # conductor (complex Fresnel, no diffuse term), its u axis along circles about the centre (lathe-turned).
 COPPER = mc.EXAMPLE_BSDF
 HELDOUT_VIEW = (50.9, -15.3)          # config.yaml validate.views 'paper', phi relative to the fitting camera
-# Held-out relative L2 of the fit over the sample pixels (all frames pooled), measured 2026-12-01: 0.225 with
-# issue 13's sampling-invariant fit (one representative, each point turned onto it); 0.319 before, at commits
-# 66c7d9f and cdb8eed (the Ward baseline: 0.296; the project's own renderer given the same copper, rig and
-# preset: 0.46, Ward 0.32). The bound is 0.225 plus 16 %; the issue's target is 0.10 (not met: closing note).
-MAX_HELDOUT_REL_L2 = 0.26
+# Held-out relative L2 of the fit over the sample pixels (all frames pooled), measured 2026-12-02: 0.275 with
+# issue 13's sampling-invariant fit (pooled representatives, each point of a turning cluster its representative
+# turned); 0.319 before, at commits 66c7d9f and cdb8eed (the Ward baseline: 0.296; the project's own renderer
+# given the same copper, rig and preset: 0.46, Ward 0.32). The whole disc as one representative gave 0.225 here
+# but 0.246 against 0.101 on the demo, so it was not kept (docs/decisions.md). The bound is 0.275 plus 16 %;
+# the issue's target is 0.10 (not met).
+MAX_HELDOUT_REL_L2 = 0.32
 
 
 @pytest.fixture(scope="module")
