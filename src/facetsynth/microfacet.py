@@ -383,6 +383,16 @@ def fresnel(cos_ih, eta):
 # --------------------------------------------------------------------------
 # full model (eq. 6)
 # --------------------------------------------------------------------------
+def _terms(wi, wo, kd, ks, phi_frame, kind):
+    """What eq. 6 and its variants share: float64 inputs, h, c = |i.h| (computed symmetrically, so
+    reciprocity holds bitwise), the checked NDF kind and the material frame (one cos / sin for the
+    three directions)."""
+    wi, wo, kd, ks = _f64(wi), _f64(wo), _f64(kd), _f64(ks)
+    h = half_vector(wi, wo)
+    c = 0.5 * (np.abs(_dot(wi, h)) + np.abs(_dot(wo, h)))
+    return wi, wo, kd, ks, h, c, _check_kind(kind), _frame(phi_frame)
+
+
 def rho(wi, wo, kd, ks, eta, alpha_u, alpha_v, phi_frame=0.0, kind="ggx"):
     """Full SVBRDF of eq. 6 (eqs. 1-5 combined), shape ``(..., 3)``, in 1/sr.
 
@@ -398,14 +408,7 @@ def rho(wi, wo, kd, ks, eta, alpha_u, alpha_v, phi_frame=0.0, kind="ggx"):
     Reciprocity rho(i, o) = rho(o, i) holds bitwise (h and c = |i.h| are
     computed symmetrically).
     """
-    wi = _f64(wi)
-    wo = _f64(wo)
-    kd = _f64(kd)
-    ks = _f64(ks)
-    h = half_vector(wi, wo)
-    c = 0.5 * (np.abs(_dot(wi, h)) + np.abs(_dot(wo, h)))
-    kind = _check_kind(kind)
-    frame = _frame(phi_frame)                      # one cos / sin for the three directions
+    wi, wo, kd, ks, h, c, kind, frame = _terms(wi, wo, kd, ks, phi_frame, kind)
     d = _ndf_local(_rotate(h, frame), alpha_u, alpha_v, kind)
     f = fresnel(c, eta)
     a_i = _projected_area_local(_rotate(wi, frame), alpha_u, alpha_v, kind)
@@ -565,14 +568,7 @@ def rho_extended(wi, wo, kd, ks, eta, alpha_u, alpha_v, phi_frame=0.0, kind="ggx
     energy-bounded layer). Reciprocal and non-negative in every case; 0 (all channels) where
     i.n <= 0 or o.n <= 0. With every option off it equals :func:`rho` bit for bit.
     """
-    wi = _f64(wi)
-    wo = _f64(wo)
-    kd = _f64(kd)
-    ks = _f64(ks)
-    h = half_vector(wi, wo)
-    c = 0.5 * (np.abs(_dot(wi, h)) + np.abs(_dot(wo, h)))
-    kind = _check_kind(kind)
-    frame = _frame(phi_frame)
+    wi, wo, kd, ks, h, c, kind, frame = _terms(wi, wo, kd, ks, phi_frame, kind)
     li, lo = _rotate(wi, frame), _rotate(wo, frame)
     d = _ndf_local(_rotate(h, frame), alpha_u, alpha_v, kind)
     a_i = _projected_area_local(li, alpha_u, alpha_v, kind)
