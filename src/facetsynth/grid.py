@@ -17,6 +17,12 @@ from functools import cached_property
 import numpy as np
 
 
+def turn(d: np.ndarray, phi: np.ndarray) -> np.ndarray:
+    """Directions (..., 3) turned about the normal by phi (...) radians: R(phi) d, azimuth + phi (eq. 13)."""
+    c, s = np.cos(phi), np.sin(phi)
+    return np.stack([c * d[..., 0] - s * d[..., 1], s * d[..., 0] + c * d[..., 1], d[..., 2]], axis=-1)
+
+
 @dataclass(frozen=True)
 class DirectionGrid:
     """A polar grid of ``n_theta`` elevation rings x ``n_phi`` azimuth sectors."""

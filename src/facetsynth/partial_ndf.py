@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .grid import DirectionGrid
+from .grid import DirectionGrid, turn
 from .microfacet import fresnel
 
 # Eq. 5 is smooth in k (sec. 3): it is evaluated on this coarse grid of directions.
@@ -184,8 +184,7 @@ def pooled_fit(specular: np.ndarray, valid: np.ndarray, points: np.ndarray, view
     h = h / np.maximum(np.linalg.norm(h, axis=-1, keepdims=True), 1e-12)
     w_members = np.asarray(member_confidence, float)
     if rotation is not None:
-        c, s = np.cos(rotation)[:, None], np.sin(rotation)[:, None]
-        h = np.stack([c * h[..., 0] - s * h[..., 1], s * h[..., 0] + c * h[..., 1], h[..., 2]], axis=-1)
+        h = turn(h, np.asarray(rotation, float)[:, None])
         w_members = np.stack([grid.rotate(wm, -phi) for wm, phi in zip(w_members, rotation)])
     use = np.asarray(valid, bool) & (wi[..., 2] > np.cos(np.radians(grazing_deg)))
     value = 4.0 * np.asarray(specular, float) * np.clip(wi[..., 2], 0.0, None) * np.clip(o[..., 2], 0.0, None)

@@ -43,19 +43,13 @@ import numpy as np
 
 from .errors import InputError
 from .fileio import read_exr, read_json, read_npy, write_exr, write_json, write_npy
-from .grid import DirectionGrid
+from .grid import DirectionGrid, turn
 from .microfacet import fresnel, half_vector
 from .partial_ndf import SHADOWING_GRID
 from .plane import PlaneGrid
 
 FORMAT_VERSION = 1
 CHUNK = 1 << 16   # directions evaluated per block: bounds eval's memory
-
-
-def turn(d: np.ndarray, phi: np.ndarray) -> np.ndarray:
-    """Directions (N, 3) turned about the normal by phi (N,) radians: R(phi) d, azimuth + phi."""
-    c, s = np.cos(phi), np.sin(phi)
-    return np.stack([c * d[..., 0] - s * d[..., 1], s * d[..., 0] + c * d[..., 1], d[..., 2]], axis=-1)
 
 
 def _bilinear(grid: DirectionGrid, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -85,7 +85,7 @@ def run(geometry: str | Path, specular: str | Path, valid: str | Path, slice_out
             value, defined = lights.interpolate(s.mean(axis=-1), ok[tile], points[tile], directions)
             table[tile] = push_pull((value * defined).reshape((-1,) + grid.shape),
                                     defined.reshape((-1,) + grid.shape).astype(float))
-            cover[tile] = footprint.coverage(points[tile], grid.directions.reshape(-1, 3)).reshape((-1,) + grid.shape)
+            cover[tile] = footprint.coverage(points[tile], directions).reshape((-1,) + grid.shape)
             total = np.where(ok[tile][..., None], s, 0.0).sum(axis=1)
             mean = total.mean(axis=1, keepdims=True)
             colour[tile] = np.divide(total, mean, out=np.ones_like(total), where=mean > 0)
