@@ -69,6 +69,8 @@ def test_validate_scores_heldout_views_and_writes_side_by_side_images(tmp_path, 
         assert v["heldout_psnr_db"] > 45 and v["heldout_ssim"] > 0.999       # true parameters: tabulation only
         assert v["baseline_ward_psnr_db"] < v["heldout_psnr_db"] - 10
         assert v["frames"] == len(manifest.load(tmp_path / "heldout" / "paper")["frames"])
+        assert set(v["heldout_rel_l2_regions"]) <= {r["name"] for r in Scene.load(tmp_path / "scene.yaml").regions}
+        assert max(v["heldout_rel_l2_regions"].values()) < 0.05 < min(v["baseline_ward_rel_l2_regions"].values())
     assert m["heldout_psnr_db"] == pytest.approx(np.mean([v["heldout_psnr_db"] for v in m["views"].values()]))
     assert m["fit_seconds"]["ours"] == 12.5 and m["fit_seconds"]["baseline_ward"] == 12.5
     assert "peak" in m["normalisation"]
@@ -164,7 +166,7 @@ def test_diffuse_truth_is_the_rigs_render_of_the_diffuse_term(repo, tmp_path):
     lights = np.array([[0.0, 0.05, 0.04], [0.03, 0.1, 0.04]])
     intensity = np.array([[0.3, 0.3, 0.3], [0.2, 0.3, 0.4]])
     for s in (1, 2):
-        diffuse, analytic = validate.diffuse_truth(scene, camera, lights, intensity, supersample=s)
+        diffuse, analytic, _ = validate.diffuse_truth(scene, camera, lights, intensity, supersample=s)
         xy = camera.pixel_plane_points(s)
         on = scene.on_sample(xy)
         maps = scene.parameters(xy[on])
@@ -175,6 +177,26 @@ def test_diffuse_truth_is_the_rigs_render_of_the_diffuse_term(repo, tmp_path):
             expected = image.reshape(camera.height, s, camera.width, s, 3).mean(axis=(1, 3))
             np.testing.assert_allclose(diffuse[q], expected, rtol=1e-5, atol=1e-9)
         assert analytic.sum() > 0 and (analytic <= on.reshape(camera.height, s, camera.width, s).all(axis=(1, 3))).all()
+
+
+def test_region_scores_say_which_material_holds_the_error(repo):
+    """Two halves: the region map follows the scene (pixels straddling the edge are -1), and a prediction that
+    is exact on one half and twice the truth on the other scores 0 and 1 there."""
+    half = {"kd": [0.3, 0.2, 0.1], "ks": [0.0, 0.0, 0.0], "eta": 1.5, "alpha": [0.2, 0.2], "frame": {"angle_deg": 0}}
+    scene = Scene.from_dict({"name": "halves", "size": [0.1, 0.1], "regions": [
+        {"name": "left", "where": {"rect": {"x": [-0.05, 0.0], "y": [-0.05, 0.05]}}, **half},
+        {"name": "right", "where": {"rect": {"x": [0.0, 0.05], "y": [-0.05, 0.05]}}, **half}]})
+    camera = validate.heldout_rig(VirtualRig.load(repo / "tests/data/rig-tiny.yaml"), 30.0, 10.0, 8, 2).camera(0.1)
+    lights, intensity = np.array([[0.0, 0.05, 0.04]]), np.array([[0.3, 0.3, 0.3]])
+    diffuse, analytic, region = validate.diffuse_truth(scene, camera, lights, intensity, supersample=2)
+    x = camera.pixel_plane_points(1)[..., 0]
+    on = analytic & (diffuse[0].max(axis=-1) > 0)
+    assert (region[on & (x < -0.002)] == 0).all() and (region[on & (x > 0.002)] == 1).all()
+    assert (region[~scene.on_sample(camera.pixel_plane_points(1))] == -1).all()
+    assert (region[on] == -1).sum() > 0            # the sub-pixels of the pixels on the edge disagree
+    prediction = np.where((region == 1)[None, ..., None], 2.0 * diffuse, diffuse)
+    scores = validate.region_scores(diffuse.astype(float), prediction.astype(float), on, region, ["left", "right"])
+    assert scores == pytest.approx({"left": 0.0, "right": 1.0}, abs=1e-6)
 
 
 def test_new_rules_build_their_jobs_and_a_bad_config_is_refused(repo, tmp_path):
@@ -212,11 +234,11 @@ def test_diffuse_truth_reproduces_a_matte_heldout_capture(repo, tmp_path, calibr
     m = manifest.load(tmp_path / "held", check_files=False)
     assert ("calibration" in m["truth"]) == calibration_error
     truth = np.stack([read_rgb(f["truth"]["radiance"]) for f in m["frames"]]).astype(float)
-    diffuse, analytic = validate.diffuse_truth(Scene.load(m["truth"]["scene"]), *validate.true_rig(m), 1)
+    diffuse, analytic, _ = validate.diffuse_truth(Scene.load(m["truth"]["scene"]), *validate.true_rig(m), 1)
     inside = analytic & (truth.max(axis=(0, 3)) > 0)
     assert inside.sum() > 1000
     np.testing.assert_allclose(diffuse[:, inside], truth[:, inside], rtol=2e-3)       # truth stored as half floats
-    nominal, _ = validate.diffuse_truth(Scene.load(m["truth"]["scene"]), manifest.camera(m),
+    nominal, _, _ = validate.diffuse_truth(Scene.load(m["truth"]["scene"]), manifest.camera(m),
                                         manifest.light_positions(m), manifest.light_intensities(m), 1)
     if calibration_error:      # the nominal rig would leave a residual "specular" part where there is none
         assert np.abs(nominal[:, inside] - truth[:, inside]).max() > 0.01 * truth[:, inside].max()

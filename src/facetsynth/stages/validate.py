@@ -38,7 +38,8 @@ NORMALISATION = ("over the sample's pixels (every sub-pixel on the sample), line
                  "same of (pred - diffuse_truth) against (truth - diffuse_truth), diffuse_truth = the truth's kd/pi "
                  "(n.i) L / r^2 of the same frames, over the sample pixels whose truth is analytic eq. 6 "
                  "(MaterialMaps.analytic; specular_pixels counts them), rendered with the rig as it truly was (its "
-                 "calibration error, if any); heldout_frame_psnr_median_db / _worst_db: each frame's own PSNR over the "
+                 "calibration error, if any); heldout_rel_l2_regions (views only): heldout_rel_l2 per truth "
+                 "region, over the pixels whose every sub-pixel lies in it; heldout_frame_psnr_median_db / _worst_db: each frame's own PSNR over the "
                  "sample pixels, peak = that frame's largest true radiance there, capped at 100 dB, frames "
                  "without light on the sample skipped; the median and the minimum over the view's frames. Top-level "
                  "figures are plain means of the per-view figures (the worst too: per view in views)")
@@ -110,7 +111,7 @@ def side_by_side(truth: np.ndarray, ours: np.ndarray, ward: np.ndarray | None, p
 
 
 def diffuse_truth(scene: Scene, camera, lights: np.ndarray, intensities: np.ndarray,
-                  supersample: int = 1) -> tuple[np.ndarray, np.ndarray]:
+                  supersample: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The truth's diffuse radiance kd/pi (n.i) L / |P - x|^2 (eq. 8 forwards, eq. 6's first term) per frame.
 
     Rendered as the virtual rig renders the truth (each sub-pixel sees its plane
@@ -118,7 +119,9 @@ def diffuse_truth(scene: Scene, camera, lights: np.ndarray, intensities: np.ndar
     lights (F, 3) and intensities (F, 3). Returns (diffuse (F, H, W, 3) float32,
     analytic (H, W) bool: pixels whose every sub-pixel is on the sample and whose
     truth is exactly eq. 6 there, i.e. where kd is the truth's diffuse term;
-    ``MaterialMaps.analytic`` when the scene has it, else every sample point).
+    ``MaterialMaps.analytic`` when the scene has it, else every sample point;
+    region (H, W) int: the scene region every sub-pixel of the pixel lies in, -1
+    where they differ, on markers and off the sample).
     """
     s = int(supersample)
     xy = camera.pixel_plane_points(s)
@@ -131,13 +134,25 @@ def diffuse_truth(scene: Scene, camera, lights: np.ndarray, intensities: np.ndar
         known[on] = np.asarray(analytic_points, bool).reshape(-1)
     h, w = camera.height, camera.width
     analytic = known.reshape(h, s, w, s).all(axis=(1, 3))
+    sub = np.full(on.shape, -1, np.int32)
+    sub[on] = np.asarray(maps.region).reshape(-1)
+    sub = sub.reshape(h, s, w, s).transpose(0, 2, 1, 3).reshape(h, w, -1)
+    region = np.where((sub == sub[..., :1]).all(axis=-1), sub[..., 0], -1)
     kd_over_pi = np.asarray(maps.kd, float) / np.pi
     out = np.zeros((len(lights), h, w, 3), np.float32)
     image = np.zeros(on.shape + (3,))
     for q, (light, intensity) in enumerate(zip(lights, intensities)):
         image[on] = radiance(points, lambda wi, wo: kd_over_pi, light, intensity, camera.centre)
         out[q] = image.reshape(h, s, w, s, 3).mean(axis=(1, 3))
-    return out, analytic
+    return out, analytic, region
+
+
+def region_scores(truth: np.ndarray, prediction: np.ndarray, mask: np.ndarray, region: np.ndarray,
+                  names: list[str]) -> dict[str, float | None]:
+    """Relative L2 of the radiance (:func:`facetsynth.metrics.relative_l2`) per truth region: which
+    material holds a view's error (a scene's mean hides a region its model cannot show)."""
+    return {name: finite_or_none(relative_l2(prediction, truth, mask & (region == k)))
+            for k, name in enumerate(names) if np.any(mask & (region == k))}
 
 
 def true_rig(m: dict[str, Any]) -> tuple[Any, np.ndarray, np.ndarray]:
@@ -217,10 +232,12 @@ def run(svbrdf: str | Path, ward: str | Path | None, heldout: dict[str, str | Pa
             predicted = predict(model, Path(folder) / "manifest.json", target, progress=False)
             predictions[name] = np.stack([read_rgb(target / f["exposures"][0]["file"])
                                           for f in predicted["frames"]]).astype(float)
-        diffuse, specular_mask = None, None
+        diffuse, specular_mask, region, names = None, None, None, []
         if manifest_io.has_truth(m):
-            diffuse, analytic = diffuse_truth(Scene.load(m["truth"]["scene"]), *true_rig(m), _supersample(rig))
+            scene = Scene.load(m["truth"]["scene"])
+            diffuse, analytic, region = diffuse_truth(scene, *true_rig(m), _supersample(rig))
             specular_mask = mask & analytic
+            names = [r["name"] for r in scene.regions]
         ours = image_scores(truth, predictions["ours"], mask)
         record = {"frames": len(m["frames"]), "sample_pixels": int(mask.sum()),
                   "camera_centre": manifest_io.camera(m).centre.tolist(),
@@ -229,12 +246,17 @@ def run(svbrdf: str | Path, ward: str | Path | None, heldout: dict[str, str | Pa
                   "peak_radiance": ours["peak"],
                   "specular_pixels": None if specular_mask is None else int(specular_mask.sum())}
         record.update(trusted_scores(truth, predictions["ours"], mask, diffuse, specular_mask))
+        if region is not None:
+            record["heldout_rel_l2_regions"] = region_scores(truth, predictions["ours"], mask, region, names)
         if "ward" in predictions:
             base = image_scores(truth, predictions["ward"], mask)
             record.update({"baseline_ward_psnr_db": base["psnr_db"], "baseline_ward_rmse": base["rmse"],
                            "baseline_ward_ssim": base["ssim"]})
             record.update({"baseline_ward_" + k[len("heldout_"):]: v for k, v in
                            trusted_scores(truth, predictions["ward"], mask, diffuse, specular_mask).items()})
+            if region is not None:
+                record["baseline_ward_rel_l2_regions"] = region_scores(truth, predictions["ward"], mask, region,
+                                                                       names)
         per_view[view] = record
         log.info("%s: ours %.2f dB (SSIM %.4f, rel L2 %s, specular rel L2 %s, frame PSNR median %s / worst %s dB)%s",
                  view, ours["psnr_db"], ours["ssim"], _fmt(record["heldout_rel_l2"]),
