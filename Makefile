@@ -2,6 +2,8 @@
 #   make run   - set up .venv, install facetsynth, run the workflow on the demo sample
 #   make test  - set up .venv, install facetsynth with test extras, run the test suite
 #   make test-scenes - the slow whole-workflow scene tests of issue 13 (about 10 min; CI runs them after make test)
+#   make test-cluster - two samples through a single-node SLURM cluster on localhost against a local run (about
+#                3 min; installs Debian's slurmctld, slurmd, slurm-client and munge when missing: needs root)
 #   make bench - run every preset (fast, balanced, accurate) on demo, wallpaper and satin and write
 #                results/bench/tradeoff.csv and tradeoff.png (about 17 min on 2 cores); restrict with
 #                make bench BENCH_PRESETS=fast BENCH_SCENES=demo, or BENCH_ARGS=--dry-run
@@ -14,7 +16,7 @@ BENCH_PRESETS ?= fast balanced accurate
 BENCH_SCENES ?= demo wallpaper satin
 BENCH_ARGS ?=
 
-.PHONY: run test test-scenes bench clean
+.PHONY: run test test-scenes test-cluster bench clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -28,6 +30,10 @@ $(VENV)/.installed-test: pyproject.toml | $(BIN)/python
 	$(BIN)/python -m pip install --quiet -e ".[test]"
 	touch $@ $(VENV)/.installed-run
 
+$(VENV)/.installed-cluster: pyproject.toml $(VENV)/.installed-test
+	$(BIN)/python -m pip install --quiet -e ".[test,cluster]"
+	touch $@
+
 $(VENV)/.installed-bench: pyproject.toml | $(BIN)/python
 	$(BIN)/python -m pip install --quiet -e ".[bench]"
 	touch $@ $(VENV)/.installed-run
@@ -40,6 +46,10 @@ test: $(VENV)/.installed-test
 
 test-scenes: $(VENV)/.installed-test
 	$(BIN)/python -m pytest -q -m scenes
+
+test-cluster: $(VENV)/.installed-cluster
+	bash tests/cluster/install.sh
+	$(BIN)/python -m pytest -q -m cluster
 
 bench: $(VENV)/.installed-bench
 	$(BIN)/python workflow/scripts/bench.py --cores $(CORES) --presets $(BENCH_PRESETS) --scenes $(BENCH_SCENES) $(BENCH_ARGS)

@@ -10,6 +10,11 @@ def capture_inputs(wildcards):
     return inputs
 
 
+# On a cluster (profiles/slurm) capture runs on the submitting host: it drives the rig's hardware.
+localrules:
+    capture,
+
+
 rule capture:
     input:
         unpack(capture_inputs),

@@ -56,6 +56,11 @@ def typed(value):
 
 PRESET_KNOBS = apply_preset(config)
 validate(config, "../schemas/config.schema.yaml")
+SCATTER_TILES = config["scatter"]["tiles"]
+
+
+scattergather:
+    tiles=SCATTER_TILES,
 
 
 def read_samples(path):

@@ -50,24 +50,73 @@ rule resample:
         "../scripts/resample.py"
 
 
-rule partial_ndf:
-    input:
-        geometry="results/{sample}/rectify/geometry.json",
-        slice="results/{sample}/resample/specular_slice.npy",
-        coverage="results/{sample}/resample/coverage.npy",
-        grid="results/{sample}/resample/grid.json",
-    output:
-        ndf="results/{sample}/partial_ndf/ndf.npy",
-        confidence="results/{sample}/partial_ndf/confidence.npy",
-        metrics="results/{sample}/partial_ndf/metrics.json",
-    params:
-        **config["partial_ndf"],
-    log:
-        "results/{sample}/logs/partial_ndf.log",
-    benchmark:
-        "results/{sample}/benchmarks/partial_ndf.tsv"
-    threads: 1
-    resources:
-        mem_mb=3000,
-    script:
-        "../scripts/partial_ndf.py"
+if SCATTER_TILES == 1:
+
+    rule partial_ndf:
+        input:
+            geometry="results/{sample}/rectify/geometry.json",
+            slice="results/{sample}/resample/specular_slice.npy",
+            coverage="results/{sample}/resample/coverage.npy",
+            grid="results/{sample}/resample/grid.json",
+        output:
+            ndf="results/{sample}/partial_ndf/ndf.npy",
+            confidence="results/{sample}/partial_ndf/confidence.npy",
+            metrics="results/{sample}/partial_ndf/metrics.json",
+        params:
+            **config["partial_ndf"],
+        log:
+            "results/{sample}/logs/partial_ndf.log",
+        benchmark:
+            "results/{sample}/benchmarks/partial_ndf.tsv"
+        threads: 1
+        resources:
+            mem_mb=3000,
+        script:
+            "../scripts/partial_ndf.py"
+
+else:   # scatter.tiles > 1: one job per part of the points (whole tiles), joined bitwise as one run's
+
+    rule partial_ndf_part:
+        input:
+            geometry="results/{sample}/rectify/geometry.json",
+            slice="results/{sample}/resample/specular_slice.npy",
+            coverage="results/{sample}/resample/coverage.npy",
+            grid="results/{sample}/resample/grid.json",
+        output:
+            ndf=temp("results/{sample}/partial_ndf/parts/{scatteritem}/ndf.npy"),
+            confidence=temp("results/{sample}/partial_ndf/parts/{scatteritem}/confidence.npy"),
+            record=temp("results/{sample}/partial_ndf/parts/{scatteritem}/record.npz"),
+        params:
+            **config["partial_ndf"],
+        log:
+            "results/{sample}/logs/partial_ndf/{scatteritem}.log",
+        benchmark:
+            "results/{sample}/benchmarks/partial_ndf/{scatteritem}.tsv"
+        threads: 1
+        resources:
+            mem_mb=3000,
+        script:
+            "../scripts/partial_ndf.py"
+
+    rule partial_ndf:
+        input:
+            geometry="results/{sample}/rectify/geometry.json",
+            grid="results/{sample}/resample/grid.json",
+            ndf=gather.tiles("results/{{sample}}/partial_ndf/parts/{scatteritem}/ndf.npy"),
+            confidence=gather.tiles("results/{{sample}}/partial_ndf/parts/{scatteritem}/confidence.npy"),
+            records=gather.tiles("results/{{sample}}/partial_ndf/parts/{scatteritem}/record.npz"),
+        output:
+            ndf="results/{sample}/partial_ndf/ndf.npy",
+            confidence="results/{sample}/partial_ndf/confidence.npy",
+            metrics="results/{sample}/partial_ndf/metrics.json",
+        params:
+            **config["partial_ndf"],
+        log:
+            "results/{sample}/logs/partial_ndf.log",
+        benchmark:
+            "results/{sample}/benchmarks/partial_ndf.tsv"
+        threads: 1
+        resources:
+            mem_mb=1000,
+        script:
+            "../scripts/partial_ndf.py"

@@ -11,7 +11,7 @@ from tqdm import tqdm
 from .. import partial_ndf as pndf
 from ..fileio import atomic_path, read_json, write_json
 from ..grid import DirectionGrid
-from .common import RectifiedCapture, tiles
+from .common import TILE_POINTS, RectifiedCapture, tiles
 
 log = logging.getLogger(__name__)
 
@@ -31,23 +31,91 @@ def run(geometry: str | Path, slice_path: str | Path, coverage_path: str | Path,
     """
     capture = RectifiedCapture.load(geometry)
     grid = DirectionGrid.from_dict(read_json(grid_path))
+    settings = dict(per_point_view=per_point_view, constrained=constrained, grazing_deg=grazing_deg, tol=tol,
+                    max_iter=max_iter)
+    fitted = _fit_points(capture, grid, slice_path, coverage_path, slice(0, capture.n_points), ndf_out,
+                         confidence_out, **settings)
+    write_json(metrics_out, _metrics(capture, grid, fitted, **settings))
+
+
+def part_points(n: int, part: int, parts: int) -> slice:
+    """The points of scatter part ``part`` of ``parts`` (0-based): whole tiles of TILE_POINTS, contiguous, so that
+    every tile is fitted exactly as in one unsplit run (the results are bitwise the same)."""
+    if not 0 <= part < parts:
+        raise ValueError(f"scatter part {part} of {parts} does not exist")
+    groups = np.array_split(np.arange(-(-n // TILE_POINTS)), parts)[part]
+    if groups.size == 0:
+        return slice(n, n)
+    return slice(int(groups[0]) * TILE_POINTS, min(n, (int(groups[-1]) + 1) * TILE_POINTS))
+
+
+def run_part(geometry: str | Path, slice_path: str | Path, coverage_path: str | Path, grid_path: str | Path,
+             part: int, parts: int, ndf_out: str | Path, confidence_out: str | Path, record_out: str | Path,
+             per_point_view: bool = False, constrained: bool | str = True, grazing_deg: float = 80.0,
+             tol: float = 1e-3, max_iter: int = 30) -> None:
+    """One scatter part (``scatter.tiles`` > 1): the partial NDFs of :func:`part_points` only, and a record
+    (.npz: the points' iterations, convergence and scored errors) that :func:`gather` turns into the
+    metrics of an unsplit run."""
+    capture = RectifiedCapture.load(geometry)
+    grid = DirectionGrid.from_dict(read_json(grid_path))
+    points = part_points(capture.n_points, part, parts)
+    fitted = _fit_points(capture, grid, slice_path, coverage_path, points, ndf_out, confidence_out,
+                         per_point_view=per_point_view, constrained=constrained, grazing_deg=grazing_deg, tol=tol,
+                         max_iter=max_iter)
+    with atomic_path(record_out, suffix=".npz") as tmp:
+        np.savez(tmp, start=points.start, **fitted)
+
+
+def gather(geometry: str | Path, grid_path: str | Path, ndf_parts: list[str | Path],
+           confidence_parts: list[str | Path], records: list[str | Path], ndf_out: str | Path,
+           confidence_out: str | Path, metrics_out: str | Path, per_point_view: bool = False,
+           constrained: bool | str = True, grazing_deg: float = 80.0, tol: float = 1e-3, max_iter: int = 30) -> None:
+    """The scatter parts joined into the unsplit outputs (streamed part by part) and the unsplit metrics."""
+    capture = RectifiedCapture.load(geometry)
+    grid = DirectionGrid.from_dict(read_json(grid_path))
+    loaded = [dict(np.load(r)) for r in records]
+    order = np.argsort([int(record["start"]) for record in loaded], kind="stable")
+    loaded = [loaded[k] for k in order]
+    for parts, out in ((ndf_parts, ndf_out), (confidence_parts, confidence_out)):
+        with atomic_path(out, suffix=".npy") as tmp:
+            joined = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.float32,
+                                               shape=(capture.n_points,) + grid.shape)
+            start = 0
+            for k in order:
+                block = np.load(parts[k], mmap_mode="r")
+                joined[start:start + len(block)] = block
+                start += len(block)
+            if start != capture.n_points:
+                raise ValueError(f"{out}: the scatter parts hold {start} points, the capture {capture.n_points}")
+            joined.flush()
+            del joined
+    fitted = {key: np.concatenate([record[key] for record in loaded]) for key in ("iterations", "converged", "errors")}
+    write_json(metrics_out, _metrics(capture, grid, fitted, per_point_view=per_point_view, constrained=constrained,
+                                     grazing_deg=grazing_deg, tol=tol, max_iter=max_iter))
+
+
+def _fit_points(capture: RectifiedCapture, grid: DirectionGrid, slice_path, coverage_path, points: slice,
+                ndf_out, confidence_out, per_point_view, constrained, grazing_deg, tol, max_iter) -> dict:
+    """Fit the partial NDFs of ``points`` (a slice of the capture's points, whole tiles) into (len, T, F)
+    float32 files; returns the points' iterations, convergence and the scored points' errors."""
     table = np.load(slice_path, mmap_mode="r")
     cover = np.load(coverage_path, mmap_mode="r")
-    n = capture.n_points
     truth = capture.truth()
     scored = scored_points(capture, truth)
+    n = points.stop - points.start
     errors = []
     iterations, converged = np.zeros(n, int), np.zeros(n, bool)
     views = capture.view_directions(per_point_view)
     with atomic_path(ndf_out, suffix=".npy") as tmp_ndf, atomic_path(confidence_out, suffix=".npy") as tmp_w:
         ndf = np.lib.format.open_memmap(tmp_ndf, mode="w+", dtype=np.float32, shape=(n,) + grid.shape)
         weight = np.lib.format.open_memmap(tmp_w, mode="w+", dtype=np.float32, shape=(n,) + grid.shape)
-        for tile in tqdm(list(tiles(n)), desc="partial_ndf", unit="tile"):
+        for local in tqdm(list(tiles(n, TILE_POINTS)), desc="partial_ndf", unit="tile"):
+            tile = slice(points.start + local.start, points.start + local.stop)
             s, c = np.asarray(table[tile], float), np.asarray(cover[tile], float)
             view = views[tile]
             fit = pndf.fit(s, c, view, grid, constrained, grazing_deg, tol, max_iter)
-            ndf[tile], weight[tile] = fit.ndf, fit.confidence
-            iterations[tile], converged[tile] = fit.iterations, fit.converged
+            ndf[local], weight[local] = fit.ndf, fit.confidence
+            iterations[local], converged[local] = fit.iterations, fit.converged
             pick = scored[tile]
             if pick.any():
                 errors.append(_errors(fit.ndf[pick], fit.confidence[pick], view[pick],
@@ -55,17 +123,24 @@ def run(geometry: str | Path, slice_path: str | Path, coverage_path: str | Path,
         ndf.flush()
         weight.flush()
         del ndf, weight
+    return {"iterations": iterations, "converged": converged,
+            "errors": np.concatenate(errors) if errors else np.zeros(0)}
 
-    metrics = {"ground_truth": truth is not None, "points": n, "grid": grid.to_dict(),
+
+def _metrics(capture: RectifiedCapture, grid: DirectionGrid, fitted: dict, per_point_view, constrained, grazing_deg,
+             tol, max_iter) -> dict:
+    truth = capture.truth()
+    iterations, converged = fitted["iterations"], fitted["converged"]
+    metrics = {"ground_truth": truth is not None, "points": capture.n_points, "grid": grid.to_dict(),
                "method": pndf.shadowing_method(constrained),
                "view": "per_point" if per_point_view else "centre",
                "iterations_median": float(np.median(iterations)), "iterations_max": int(iterations.max()),
                "converged_fraction": float(converged.mean()), "grazing_deg": grazing_deg, "tolerance": tol}
     if truth is not None:
-        metrics["scored_points"] = int(scored.sum())
-        metrics["ndf_rel_l2_median"] = _median(errors)
+        metrics["scored_points"] = int(scored_points(capture, truth).sum())
+        metrics["ndf_rel_l2_median"] = _median([fitted["errors"]])
         log.info("partial NDF relative L2 against the truth, median: %s", metrics["ndf_rel_l2_median"])
-    write_json(metrics_out, metrics)
+    return metrics
 
 
 def scored_points(capture: RectifiedCapture, truth) -> np.ndarray:
