@@ -74,3 +74,21 @@ def test_distorted_camera_is_refused_with_a_clear_error(camera):
     distorted = Camera(camera.width, camera.height, camera.K, camera.R, camera.t, np.array([0.1, 0, 0, 0, 0]))
     with pytest.raises(InputError, match="distortion"):
         rectified_to_camera(distorted, PlaneGrid(0.1, 0.1, 8, 8))
+
+
+def nadir_camera(pixels: int = 80, focal: float = 500.0, distance: float = 1.0, x: float = 0.0) -> Camera:
+    """A camera straight above the plane: one pixel covers distance / focal metres."""
+    K = np.array([[focal, 0.0, (pixels - 1) / 2], [0.0, focal, (pixels - 1) / 2], [0.0, 0.0, 1.0]])
+    return Camera(pixels, pixels, K, np.diag([1.0, -1.0, -1.0]), np.array([-x, 0.0, distance]), np.zeros(5))
+
+
+def test_native_resolution_has_as_many_cells_as_pixels_see_the_sample(camera):
+    from facetsynth.rectify import native_resolution
+    flat = nadir_camera()                                    # 2 mm per pixel: a 0.1 m sample is 50 pixels wide
+    assert native_resolution(flat, 0.1, 0.1) == 50
+    assert native_resolution(flat, 0.1, 0.05) == 50          # half the rows, the same cells across
+    assert native_resolution(nadir_camera(focal=1000.0), 0.1, 0.1) == 80   # 100 px wide, cut by the 80 px image
+    # the demo camera: 216 px across in x, foreshortened by about cos(53 deg) in y: sqrt(216 x 130)
+    assert 160 <= native_resolution(camera, 0.1, 0.1) <= 172
+    with pytest.raises(InputError, match="sees no part of the sample"):
+        native_resolution(nadir_camera(x=5.0), 0.1, 0.1)

@@ -137,6 +137,12 @@ def test_noisy_capture_stays_within_three_times_the_targets(repo, tmp_path):
                 tmp_path / "rect/metrics.json", resolution=48)
     assert json.loads((tmp_path / "hdr/metrics.json").read_text())["median_rel_error"] <= 0.03
     assert json.loads((tmp_path / "rect/metrics.json").read_text())["registration_error_px"] <= 1.5
+    # resolution auto (issue 14): as many cells as pixels see the sample; the tiny rig's 120 x 80 camera: 84
+    rectify.run(tmp_path / "hdr/manifest.json", tmp_path / "auto/frames", tmp_path / "auto/geometry.json",
+                tmp_path / "auto/metrics.json", resolution="auto")
+    auto = json.loads((tmp_path / "auto/metrics.json").read_text())
+    assert (auto["cols"], auto["rows"], auto["resolution_rule"]) == (84, 84, "auto")
+    assert auto["registration_error_px"] <= 1.5 * 84 / 48           # the same error in metres, finer cells
 
 
 @pytest.fixture(scope="module")

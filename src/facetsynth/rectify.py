@@ -48,3 +48,19 @@ def visible_cells(camera: Camera, grid: PlaneGrid) -> np.ndarray:
     uv = camera.project(grid.points3d())
     return ((uv[..., 0] >= -0.5) & (uv[..., 0] <= camera.width - 0.5)
             & (uv[..., 1] >= -0.5) & (uv[..., 1] <= camera.height - 0.5))
+
+
+def native_resolution(camera: Camera, width: float, height: float) -> int:
+    """Grid cells across the sample's width such that the grid has as many cells as camera pixels see the
+    sample (``rectify.resolution: auto``): no more points than measured, none fewer. Pixels count when the
+    ray through their centre meets the plane, ahead of the camera, inside the sample's width x height.
+    Square cells, rows from the aspect (:func:`facetsynth.stages.rectify.run`)."""
+    xy = camera.pixel_plane_points(1)
+    points = np.concatenate([xy, np.zeros(xy.shape[:-1] + (1,))], axis=-1)
+    ahead = (points @ camera.R.T + camera.t)[..., 2] > 0
+    on = ahead & (np.abs(xy[..., 0]) <= width / 2) & (np.abs(xy[..., 1]) <= height / 2)
+    pixels = int(on.sum())
+    if pixels == 0:
+        raise InputError(None, "rectify.resolution auto: the camera sees no part of the sample "
+                               f"({width} x {height} m about the origin): check the manifest's camera")
+    return max(1, int(round(np.sqrt(pixels * width / height))))

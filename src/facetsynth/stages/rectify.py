@@ -13,7 +13,8 @@ from ..fileio import atomic_dir, file_key, read_frame, read_rgb, write_exr, writ
 from ..frames import map_frames
 from ..metrics import marker_centroids, relative_errors
 from ..plane import PlaneGrid
-from ..rectify import visible_cells, warp_to_plane
+from ..errors import InputError
+from ..rectify import native_resolution, visible_cells, warp_to_plane
 from ..render import radiance
 from ..scene import Scene
 
@@ -21,8 +22,11 @@ log = logging.getLogger(__name__)
 
 
 def run(hdr_manifest: str | Path, frames_dir: str | Path, geometry_out: str | Path, metrics_out: str | Path,
-        resolution: int, filtername: str = "triangle", threads: int = 1) -> None:
+        resolution: int | str, filtername: str = "triangle", threads: int = 1) -> None:
     """Warp every HDR frame onto a ``resolution``-cell-wide grid over the sample.
+
+    ``resolution`` "auto": the grid with as many cells as camera pixels see the sample
+    (:func:`facetsynth.rectify.native_resolution`), logged and in the metrics with the pixel count.
 
     Writes ``frames_dir/NNNN.exr`` (R, G, B, ``saturated``), and
     ``geometry_out`` (JSON): the grid and its (row, col) -> (x, y) mapping, the
@@ -33,6 +37,14 @@ def run(hdr_manifest: str | Path, frames_dir: str | Path, geometry_out: str | Pa
     capture = manifest_io.load(hdr_manifest)
     camera = manifest_io.camera(capture)
     width, height = capture["sample"]["width"], capture["sample"]["height"]
+    rule = "fixed"
+    if resolution == "auto":
+        try:
+            resolution, rule = native_resolution(camera, width, height), "auto"
+        except InputError as error:
+            raise InputError(hdr_manifest, error.problem) from None
+        log.info("resolution auto: %d cells across (the camera sees the sample with about %d x %d pixels)",
+                 resolution, resolution, max(1, int(round(resolution * height / width))))
     grid = PlaneGrid(width, height, cols=resolution, rows=max(1, int(round(resolution * height / width))))
     visible = visible_cells(camera, grid)
     frames_dir, geometry_out = Path(frames_dir), Path(geometry_out)
@@ -58,7 +70,7 @@ def run(hdr_manifest: str | Path, frames_dir: str | Path, geometry_out: str | Pa
     write_json(geometry_out, geometry)
 
     metrics = {"ground_truth": manifest_io.has_truth(capture), "cols": grid.cols, "rows": grid.rows,
-               "visible_fraction": float(visible.mean())}
+               "resolution_rule": rule, "visible_fraction": float(visible.mean())}
     if metrics["ground_truth"]:
         metrics.update(_accuracy(Scene.load(capture["truth"]["scene"]), grid, camera.centre, capture,
                                  frames_dir, visible))
