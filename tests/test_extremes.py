@@ -197,7 +197,8 @@ def run_per_point_stages(root: Path, geometry: Path, n_theta: int = 32,
          metrics_out=f["resample/metrics.json"], n_theta_range=(n_theta, n_theta))
     st_pndf.run(geometry=geometry, slice_path=f["resample/specular_slice.npy"],
          coverage_path=f["resample/coverage.npy"], grid_path=f["resample/grid.json"], ndf_out=f["partial_ndf/ndf.npy"],
-         confidence_out=f["partial_ndf/confidence.npy"], metrics_out=f["partial_ndf/metrics.json"], per_point_view=True)
+         confidence_out=f["partial_ndf/confidence.npy"], metrics_out=f["partial_ndf/metrics.json"],
+         settings=st_pndf.Settings(per_point_view=True))
     st_cluster.run(geometry=geometry, ndf=f["partial_ndf/ndf.npy"], confidence=f["partial_ndf/confidence.npy"],
          grid_path=f["resample/grid.json"], specular=f["separate/specular.npy"], valid=f["separate/valid.npy"],
          kd=f["separate/kd.exr"],
@@ -968,8 +969,9 @@ def test_partial_ndf_scatter_parts_join_bitwise_into_the_unsplit_run(extreme_run
     f = extreme_run
     inputs = dict(geometry=f["geometry"], slice_path=f["resample/specular_slice.npy"],
                   coverage_path=f["resample/coverage.npy"], grid_path=f["resample/grid.json"])
+    settings = st_pndf.Settings(per_point_view=True)
     st_pndf.run(**inputs, ndf_out=tmp_path / "ndf.npy", confidence_out=tmp_path / "w.npy",
-                metrics_out=tmp_path / "m.json", per_point_view=True)
+                metrics_out=tmp_path / "m.json", settings=settings)
     assert [st_pndf.part_points(256, k, 6) for k in range(6)] == [slice(0, 64), slice(64, 128), slice(128, 192),
                                                                    slice(192, 256), slice(256, 256), slice(256, 256)]
     assert st_pndf.part_points(200, 3, 4) == slice(192, 200)
@@ -978,11 +980,11 @@ def test_partial_ndf_scatter_parts_join_bitwise_into_the_unsplit_run(extreme_run
     parts = [tmp_path / f"part{k}" for k in range(6)]
     for k in (3, 0, 5, 1, 4, 2):                      # any order
         st_pndf.run_part(**inputs, part=k, parts=6, ndf_out=parts[k] / "ndf.npy", confidence_out=parts[k] / "w.npy",
-                         record_out=parts[k] / "record.npz", per_point_view=True)
+                         record_out=parts[k] / "record.npz", settings=settings)
     shuffled = [parts[k] for k in (2, 0, 5, 4, 1, 3)]
     st_pndf.gather(f["geometry"], f["resample/grid.json"], [p / "ndf.npy" for p in shuffled],
                    [p / "w.npy" for p in shuffled], [p / "record.npz" for p in shuffled], tmp_path / "joined.npy",
-                   tmp_path / "joined_w.npy", tmp_path / "joined.json", per_point_view=True)
+                   tmp_path / "joined_w.npy", tmp_path / "joined.json", settings)
     assert np.array_equal(np.load(tmp_path / "joined.npy"), np.load(tmp_path / "ndf.npy"))
     assert np.array_equal(np.load(tmp_path / "joined_w.npy"), np.load(tmp_path / "w.npy"))
     assert metrics_of(tmp_path / "joined.json") == metrics_of(tmp_path / "m.json")

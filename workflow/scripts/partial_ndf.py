@@ -1,19 +1,17 @@
 from facetsynth.stages import partial_ndf
 from facetsynth.stages.runner import run_stage
 
-p = snakemake.params
-settings = dict(per_point_view=p.per_point_view, constrained=p.shadowing, grazing_deg=p.grazing_deg,
-                tol=p.tolerance, max_iter=p.max_iterations)
+settings = partial_ndf.Settings.from_params(snakemake.params)
 i, o = snakemake.input, snakemake.output
 if "record" in o.keys():        # one scatter part ({scatteritem} = "k-of-n")
     k, n = (int(x) for x in snakemake.wildcards.scatteritem.split("-of-"))
     run_stage(snakemake, partial_ndf.run_part, geometry=i.geometry, slice_path=i.slice, coverage_path=i.coverage,
               grid_path=i.grid, part=k - 1, parts=n, ndf_out=o.ndf, confidence_out=o.confidence,
-              record_out=o.record, **settings)
+              record_out=o.record, settings=settings)
 elif "records" in i.keys():     # the parts joined
     run_stage(snakemake, partial_ndf.gather, geometry=i.geometry, grid_path=i.grid, ndf_parts=list(i.ndf),
               confidence_parts=list(i.confidence), records=list(i.records), ndf_out=o.ndf,
-              confidence_out=o.confidence, metrics_out=o.metrics, **settings)
+              confidence_out=o.confidence, metrics_out=o.metrics, settings=settings)
 else:
     run_stage(snakemake, partial_ndf.run, geometry=i.geometry, slice_path=i.slice, coverage_path=i.coverage,
-              grid_path=i.grid, ndf_out=o.ndf, confidence_out=o.confidence, metrics_out=o.metrics, **settings)
+              grid_path=i.grid, ndf_out=o.ndf, confidence_out=o.confidence, metrics_out=o.metrics, settings=settings)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
@@ -18,9 +19,28 @@ log = logging.getLogger(__name__)
 METRIC_POINTS = 1024  # points on which the accuracy against the truth is measured
 
 
+@dataclass(frozen=True)
+class Settings:
+    """The stage's knobs: config ``partial_ndf`` (workflow/schemas/config.schema.yaml)."""
+    per_point_view: bool = False          # o(x) per point, or the paper's view at the sample centre
+    shadowing: bool | str = "constrained"  # S of eq. 5: :func:`facetsynth.partial_ndf.shadowing_method`
+    grazing_deg: float = 80.0             # light directions steeper than this are excluded
+    tolerance: float = 1e-3               # stop when D changes by less than this (relative)
+    max_iterations: int = 30
+
+    @classmethod
+    def from_params(cls, params) -> "Settings":
+        """From a rule's ``params`` (the config section's keys)."""
+        return cls(**{f.name: getattr(params, f.name) for f in fields(cls)})
+
+    def fit(self, slice_: np.ndarray, coverage: np.ndarray, view: np.ndarray, grid: DirectionGrid) -> pndf.PartialNDF:
+        return pndf.fit(slice_, coverage, view, grid, self.shadowing, self.grazing_deg, self.tolerance,
+                        self.max_iterations)
+
+
 def run(geometry: str | Path, slice_path: str | Path, coverage_path: str | Path, grid_path: str | Path,
-        ndf_out: str | Path, confidence_out: str | Path, metrics_out: str | Path, per_point_view: bool = False,
-        constrained: bool | str = True, grazing_deg: float = 80.0, tol: float = 1e-3, max_iter: int = 30) -> None:
+        ndf_out: str | Path, confidence_out: str | Path, metrics_out: str | Path,
+        settings: Settings = Settings()) -> None:
     """Fit every point's partial NDF, in tiles of points over memory-mapped tensors.
 
     For virtual captures, accuracy is measured against
@@ -31,11 +51,9 @@ def run(geometry: str | Path, slice_path: str | Path, coverage_path: str | Path,
     """
     capture = RectifiedCapture.load(geometry)
     grid = DirectionGrid.from_dict(read_json(grid_path))
-    settings = dict(per_point_view=per_point_view, constrained=constrained, grazing_deg=grazing_deg, tol=tol,
-                    max_iter=max_iter)
     fitted = _fit_points(capture, grid, slice_path, coverage_path, slice(0, capture.n_points), ndf_out,
-                         confidence_out, **settings)
-    write_json(metrics_out, _metrics(capture, grid, fitted, **settings))
+                         confidence_out, settings)
+    write_json(metrics_out, _metrics(capture, grid, fitted, settings))
 
 
 def part_points(n: int, part: int, parts: int) -> slice:
@@ -51,25 +69,21 @@ def part_points(n: int, part: int, parts: int) -> slice:
 
 def run_part(geometry: str | Path, slice_path: str | Path, coverage_path: str | Path, grid_path: str | Path,
              part: int, parts: int, ndf_out: str | Path, confidence_out: str | Path, record_out: str | Path,
-             per_point_view: bool = False, constrained: bool | str = True, grazing_deg: float = 80.0,
-             tol: float = 1e-3, max_iter: int = 30) -> None:
+             settings: Settings = Settings()) -> None:
     """One scatter part (``scatter.tiles`` > 1): the partial NDFs of :func:`part_points` only, and a record
     (.npz: the points' iterations, convergence and scored errors) that :func:`gather` turns into the
     metrics of an unsplit run."""
     capture = RectifiedCapture.load(geometry)
     grid = DirectionGrid.from_dict(read_json(grid_path))
     points = part_points(capture.n_points, part, parts)
-    fitted = _fit_points(capture, grid, slice_path, coverage_path, points, ndf_out, confidence_out,
-                         per_point_view=per_point_view, constrained=constrained, grazing_deg=grazing_deg, tol=tol,
-                         max_iter=max_iter)
+    fitted = _fit_points(capture, grid, slice_path, coverage_path, points, ndf_out, confidence_out, settings)
     with atomic_path(record_out, suffix=".npz") as tmp:
         np.savez(tmp, start=points.start, **fitted)
 
 
 def gather(geometry: str | Path, grid_path: str | Path, ndf_parts: list[str | Path],
            confidence_parts: list[str | Path], records: list[str | Path], ndf_out: str | Path,
-           confidence_out: str | Path, metrics_out: str | Path, per_point_view: bool = False,
-           constrained: bool | str = True, grazing_deg: float = 80.0, tol: float = 1e-3, max_iter: int = 30) -> None:
+           confidence_out: str | Path, metrics_out: str | Path, settings: Settings = Settings()) -> None:
     """The scatter parts joined into the unsplit outputs (streamed part by part) and the unsplit metrics."""
     capture = RectifiedCapture.load(geometry)
     grid = DirectionGrid.from_dict(read_json(grid_path))
@@ -90,12 +104,11 @@ def gather(geometry: str | Path, grid_path: str | Path, ndf_parts: list[str | Pa
             joined.flush()
             del joined
     fitted = {key: np.concatenate([record[key] for record in loaded]) for key in ("iterations", "converged", "errors")}
-    write_json(metrics_out, _metrics(capture, grid, fitted, per_point_view=per_point_view, constrained=constrained,
-                                     grazing_deg=grazing_deg, tol=tol, max_iter=max_iter))
+    write_json(metrics_out, _metrics(capture, grid, fitted, settings))
 
 
 def _fit_points(capture: RectifiedCapture, grid: DirectionGrid, slice_path, coverage_path, points: slice,
-                ndf_out, confidence_out, per_point_view, constrained, grazing_deg, tol, max_iter) -> dict:
+                ndf_out, confidence_out, settings: Settings) -> dict:
     """Fit the partial NDFs of ``points`` (a slice of the capture's points, whole tiles) into (len, T, F)
     float32 files; returns the points' iterations, convergence and the scored points' errors."""
     table = np.load(slice_path, mmap_mode="r")
@@ -105,7 +118,7 @@ def _fit_points(capture: RectifiedCapture, grid: DirectionGrid, slice_path, cove
     n = points.stop - points.start
     errors = []
     iterations, converged = np.zeros(n, int), np.zeros(n, bool)
-    views = capture.view_directions(per_point_view)
+    views = capture.view_directions(settings.per_point_view)
     with atomic_path(ndf_out, suffix=".npy") as tmp_ndf, atomic_path(confidence_out, suffix=".npy") as tmp_w:
         ndf = np.lib.format.open_memmap(tmp_ndf, mode="w+", dtype=np.float32, shape=(n,) + grid.shape)
         weight = np.lib.format.open_memmap(tmp_w, mode="w+", dtype=np.float32, shape=(n,) + grid.shape)
@@ -113,7 +126,7 @@ def _fit_points(capture: RectifiedCapture, grid: DirectionGrid, slice_path, cove
             tile = slice(points.start + local.start, points.start + local.stop)
             s, c = np.asarray(table[tile], float), np.asarray(cover[tile], float)
             view = views[tile]
-            fit = pndf.fit(s, c, view, grid, constrained, grazing_deg, tol, max_iter)
+            fit = settings.fit(s, c, view, grid)
             ndf[local], weight[local] = fit.ndf, fit.confidence
             iterations[local], converged[local] = fit.iterations, fit.converged
             pick = scored[tile]
@@ -127,15 +140,15 @@ def _fit_points(capture: RectifiedCapture, grid: DirectionGrid, slice_path, cove
             "errors": np.concatenate(errors) if errors else np.zeros(0)}
 
 
-def _metrics(capture: RectifiedCapture, grid: DirectionGrid, fitted: dict, per_point_view, constrained, grazing_deg,
-             tol, max_iter) -> dict:
+def _metrics(capture: RectifiedCapture, grid: DirectionGrid, fitted: dict, settings: Settings) -> dict:
     truth = capture.truth()
     iterations, converged = fitted["iterations"], fitted["converged"]
     metrics = {"ground_truth": truth is not None, "points": capture.n_points, "grid": grid.to_dict(),
-               "method": pndf.shadowing_method(constrained),
-               "view": "per_point" if per_point_view else "centre",
+               "method": pndf.shadowing_method(settings.shadowing),
+               "view": "per_point" if settings.per_point_view else "centre",
                "iterations_median": float(np.median(iterations)), "iterations_max": int(iterations.max()),
-               "converged_fraction": float(converged.mean()), "grazing_deg": grazing_deg, "tolerance": tol}
+               "converged_fraction": float(converged.mean()), "grazing_deg": settings.grazing_deg,
+               "tolerance": settings.tolerance}
     if truth is not None:
         metrics["scored_points"] = int(scored_points(capture, truth).sum())
         metrics["ndf_rel_l2_median"] = _median([fitted["errors"]])
