@@ -50,14 +50,19 @@ rule resample:
         "../scripts/resample.py"
 
 
+PARTIAL_NDF_INPUTS = {
+    "geometry": "results/{sample}/rectify/geometry.json",
+    "slice": "results/{sample}/resample/specular_slice.npy",
+    "coverage": "results/{sample}/resample/coverage.npy",
+    "grid": "results/{sample}/resample/grid.json",
+}
+
+
 if SCATTER_TILES == 1:
 
     rule partial_ndf:
         input:
-            geometry="results/{sample}/rectify/geometry.json",
-            slice="results/{sample}/resample/specular_slice.npy",
-            coverage="results/{sample}/resample/coverage.npy",
-            grid="results/{sample}/resample/grid.json",
+            **PARTIAL_NDF_INPUTS,
         output:
             ndf="results/{sample}/partial_ndf/ndf.npy",
             confidence="results/{sample}/partial_ndf/confidence.npy",
@@ -78,10 +83,7 @@ else:   # scatter.tiles > 1: one job per part of the points (whole tiles), joine
 
     rule partial_ndf_part:
         input:
-            geometry="results/{sample}/rectify/geometry.json",
-            slice="results/{sample}/resample/specular_slice.npy",
-            coverage="results/{sample}/resample/coverage.npy",
-            grid="results/{sample}/resample/grid.json",
+            **PARTIAL_NDF_INPUTS,
         output:
             ndf=temp("results/{sample}/partial_ndf/parts/{scatteritem}/ndf.npy"),
             confidence=temp("results/{sample}/partial_ndf/parts/{scatteritem}/confidence.npy"),
