@@ -40,27 +40,70 @@ rule heldout_capture:
         "../scripts/heldout_capture.py"
 
 
-rule baseline_ward:
-    input:
-        geometry="results/{sample}/rectify/geometry.json",
-        kd="results/{sample}/separate/kd.exr",
-        specular="results/{sample}/separate/specular.npy",
-        valid="results/{sample}/separate/valid.npy",
-        colour="results/{sample}/resample/specular_colour.npy",
-    output:
-        model=directory("results/{sample}/baseline/ward"),
-        metrics="results/{sample}/baseline/metrics.json",
-    params:
-        max_nfev=config["baseline"]["max_nfev"],
-    log:
-        "results/{sample}/logs/baseline_ward.log",
-    benchmark:
-        "results/{sample}/benchmarks/baseline_ward.tsv"
-    threads: 1
-    resources:
-        mem_mb=2000,
-    script:
-        "../scripts/baseline_ward.py"
+BASELINE_INPUTS = {
+    "geometry": "results/{sample}/rectify/geometry.json",
+    "kd": "results/{sample}/separate/kd.exr",
+    "specular": "results/{sample}/separate/specular.npy",
+    "valid": "results/{sample}/separate/valid.npy",
+    "colour": "results/{sample}/resample/specular_colour.npy",
+}
+
+
+if SCATTER_TILES == 1:
+
+    rule baseline_ward:
+        input:
+            **BASELINE_INPUTS,
+        output:
+            model=directory("results/{sample}/baseline/ward"),
+            metrics="results/{sample}/baseline/metrics.json",
+        params:
+            max_nfev=config["baseline"]["max_nfev"],
+        log:
+            "results/{sample}/logs/baseline_ward.log",
+        benchmark:
+            "results/{sample}/benchmarks/baseline_ward.tsv"
+        threads: 1
+        resources:
+            mem_mb=2000,
+        script:
+            "../scripts/baseline_ward.py"
+
+else:   # scatter.tiles > 1: the per-point LM fits in part jobs, joined bitwise as one run's
+
+    rule baseline_ward_part:
+        input:
+            **BASELINE_INPUTS,
+        output:
+            record=temp("results/{sample}/baseline/parts/{scatteritem}.npz"),
+        params:
+            max_nfev=config["baseline"]["max_nfev"],
+        log:
+            "results/{sample}/logs/baseline_ward/{scatteritem}.log",
+        benchmark:
+            "results/{sample}/benchmarks/baseline_ward/{scatteritem}.tsv"
+        threads: 1
+        resources:
+            mem_mb=2000,
+        script:
+            "../scripts/baseline_ward.py"
+
+    rule baseline_ward:
+        input:
+            **BASELINE_INPUTS,
+            records=gather.tiles("results/{{sample}}/baseline/parts/{scatteritem}.npz"),
+        output:
+            model=directory("results/{sample}/baseline/ward"),
+            metrics="results/{sample}/baseline/metrics.json",
+        log:
+            "results/{sample}/logs/baseline_ward.log",
+        benchmark:
+            "results/{sample}/benchmarks/baseline_ward.tsv"
+        threads: 1
+        resources:
+            mem_mb=2000,
+        script:
+            "../scripts/baseline_ward.py"
 
 
 rule validate:

@@ -64,6 +64,18 @@ class RectifiedCapture:
         return Scene.load(self.truth_scene).parameters(self.points[:, :2])
 
 
+def part_points(n: int, part: int, parts: int, size: int = TILE_POINTS) -> slice:
+    """The points of scatter part ``part`` of ``parts`` (0-based, config ``scatter.tiles``): whole tiles of
+    ``size`` points, contiguous, so that every tile is processed exactly as in one unsplit run (per-point stages
+    then join bitwise into its result; docs/decisions.md, "On a cluster"). Parts past the last tile are empty."""
+    if not 0 <= part < parts:
+        raise ValueError(f"scatter part {part} of {parts} does not exist")
+    groups = np.array_split(np.arange(-(-n // size)), parts)[part]
+    if groups.size == 0:
+        return slice(n, n)
+    return slice(int(groups[0]) * size, min(n, (int(groups[-1]) + 1) * size))
+
+
 def tiles(n: int, size: int = TILE_POINTS):
     """Slices covering range(n) in tiles of ``size``."""
     for start in range(0, n, size):

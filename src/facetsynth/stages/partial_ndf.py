@@ -12,7 +12,7 @@ from tqdm import tqdm
 from .. import partial_ndf as pndf
 from ..fileio import atomic_path, read_json, write_json
 from ..grid import DirectionGrid
-from .common import TILE_POINTS, RectifiedCapture, tiles
+from .common import TILE_POINTS, RectifiedCapture, part_points, tiles
 
 log = logging.getLogger(__name__)
 
@@ -56,17 +56,6 @@ def run(geometry: str | Path, slice_path: str | Path, coverage_path: str | Path,
     write_json(metrics_out, _metrics(capture, grid, fitted, settings))
 
 
-def part_points(n: int, part: int, parts: int) -> slice:
-    """The points of scatter part ``part`` of ``parts`` (0-based): whole tiles of TILE_POINTS, contiguous, so that
-    every tile is fitted exactly as in one unsplit run (the results are bitwise the same)."""
-    if not 0 <= part < parts:
-        raise ValueError(f"scatter part {part} of {parts} does not exist")
-    groups = np.array_split(np.arange(-(-n // TILE_POINTS)), parts)[part]
-    if groups.size == 0:
-        return slice(n, n)
-    return slice(int(groups[0]) * TILE_POINTS, min(n, (int(groups[-1]) + 1) * TILE_POINTS))
-
-
 def run_part(geometry: str | Path, slice_path: str | Path, coverage_path: str | Path, grid_path: str | Path,
              part: int, parts: int, ndf_out: str | Path, confidence_out: str | Path, record_out: str | Path,
              settings: Settings = Settings()) -> None:
@@ -75,7 +64,7 @@ def run_part(geometry: str | Path, slice_path: str | Path, coverage_path: str | 
     metrics of an unsplit run."""
     capture = RectifiedCapture.load(geometry)
     grid = DirectionGrid.from_dict(read_json(grid_path))
-    points = part_points(capture.n_points, part, parts)
+    points = part_points(capture.n_points, part, parts, TILE_POINTS)
     fitted = _fit_points(capture, grid, slice_path, coverage_path, points, ndf_out, confidence_out, settings)
     with atomic_path(record_out, suffix=".npz") as tmp:
         np.savez(tmp, start=points.start, **fitted)
