@@ -1,12 +1,13 @@
 from facetsynth.stages import partial_ndf
+from facetsynth.stages.common import scatter_item
 from facetsynth.stages.runner import run_stage
 
 settings = partial_ndf.Settings.from_params(snakemake.params)
 i, o = snakemake.input, snakemake.output
 if "record" in o.keys():        # one scatter part ({scatteritem} = "k-of-n")
-    k, n = (int(x) for x in snakemake.wildcards.scatteritem.split("-of-"))
+    part, parts = scatter_item(snakemake.wildcards.scatteritem)
     run_stage(snakemake, partial_ndf.run_part, geometry=i.geometry, slice_path=i.slice, coverage_path=i.coverage,
-              grid_path=i.grid, part=k - 1, parts=n, ndf_out=o.ndf, confidence_out=o.confidence,
+              grid_path=i.grid, part=part, parts=parts, ndf_out=o.ndf, confidence_out=o.confidence,
               record_out=o.record, settings=settings)
 elif "records" in i.keys():     # the parts joined
     run_stage(snakemake, partial_ndf.gather, geometry=i.geometry, grid_path=i.grid, ndf_parts=list(i.ndf),

@@ -12,7 +12,7 @@ from tqdm import tqdm
 from ..fileio import atomic_path, read_exr, write_json
 from ..render import light_geometry
 from ..ward import WardSVBRDF, fit_point
-from .common import TILE_POINTS, RectifiedCapture, part_points
+from .common import TILE_POINTS, RectifiedCapture, part_points, part_records
 
 log = logging.getLogger(__name__)
 
@@ -40,16 +40,11 @@ def gather(geometry: str | Path, kd_path: str | Path, colour: str | Path, specul
            records: list[str | Path], model_out: str | Path, metrics_out: str | Path) -> None:
     """The parts' fits joined into the unsplit Ward model and metrics."""
     capture = RectifiedCapture.load(geometry)
-    loaded = sorted((dict(np.load(r)) for r in records), key=lambda record: int(record["start"]))
-    fitted = {key: np.concatenate([record[key] for record in loaded]) for key in FIELDS}
-    fitted["seconds"] = float(sum(float(record["seconds"]) for record in loaded))
+    _, fitted = part_records(records)
     if len(fitted["ks"]) != capture.n_points:
         raise ValueError(f"{model_out}: the scatter parts hold {len(fitted['ks'])} points, the capture "
                          f"{capture.n_points}")
     _write(capture, kd_path, colour, fitted, specular, model_out, metrics_out)
-
-
-FIELDS = ("ks", "alpha_x", "alpha_y", "phi", "failed")
 
 
 def _fit_points(capture: RectifiedCapture, specular, valid, points: slice, max_nfev: int) -> dict:

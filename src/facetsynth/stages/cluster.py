@@ -241,5 +241,3 @@ def point_turns(d_all, w_all, visible: np.ndarray, labels: np.ndarray, pooled: P
             spread[c], median_gain[c] = float(np.std(phi[m])), float(np.median(gain[m]))
     turned = (median_gain < TURN_GAIN) & (spread > TURN_SPREAD * grid.d_phi)
     return Turns(phi, spread, median_gain, turned)
-
-

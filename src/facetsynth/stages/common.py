@@ -76,6 +76,24 @@ def part_points(n: int, part: int, parts: int, size: int = TILE_POINTS) -> slice
     return slice(int(groups[0]) * size, min(n, (int(groups[-1]) + 1) * size))
 
 
+def scatter_item(item: str) -> tuple[int, int]:
+    """(part, parts), part 0-based, of Snakemake's ``{scatteritem}`` wildcard "k-of-n"."""
+    k, n = (int(x) for x in item.split("-of-"))
+    return k - 1, n
+
+
+def part_records(records: list) -> tuple[np.ndarray, dict]:
+    """Scatter parts' records (.npz, each with the ``start`` of its points) in point order: the order of
+    ``records`` by start, and every per-point array concatenated in that order (the ``start`` and any
+    scalar, e.g. seconds, summed)."""
+    loaded = [dict(np.load(r)) for r in records]
+    order = np.argsort([int(record["start"]) for record in loaded], kind="stable")
+    joined = {key: (np.concatenate([loaded[k][key] for k in order]) if loaded[0][key].ndim
+                    else np.sum([loaded[k][key] for k in order]))
+              for key in loaded[0] if key != "start"} if loaded else {}
+    return order, joined
+
+
 def tiles(n: int, size: int = TILE_POINTS):
     """Slices covering range(n) in tiles of ``size``."""
     for start in range(0, n, size):

@@ -12,7 +12,7 @@ from tqdm import tqdm
 from .. import partial_ndf as pndf
 from ..fileio import atomic_path, read_json, write_json
 from ..grid import DirectionGrid
-from .common import TILE_POINTS, RectifiedCapture, part_points, tiles
+from .common import TILE_POINTS, RectifiedCapture, part_points, part_records, tiles
 
 log = logging.getLogger(__name__)
 
@@ -76,9 +76,7 @@ def gather(geometry: str | Path, grid_path: str | Path, ndf_parts: list[str | Pa
     """The scatter parts joined into the unsplit outputs (streamed part by part) and the unsplit metrics."""
     capture = RectifiedCapture.load(geometry)
     grid = DirectionGrid.from_dict(read_json(grid_path))
-    loaded = [dict(np.load(r)) for r in records]
-    order = np.argsort([int(record["start"]) for record in loaded], kind="stable")
-    loaded = [loaded[k] for k in order]
+    order, fitted = part_records(records)
     for parts, out in ((ndf_parts, ndf_out), (confidence_parts, confidence_out)):
         with atomic_path(out, suffix=".npy") as tmp:
             joined = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.float32,
@@ -92,7 +90,6 @@ def gather(geometry: str | Path, grid_path: str | Path, ndf_parts: list[str | Pa
                 raise ValueError(f"{out}: the scatter parts hold {start} points, the capture {capture.n_points}")
             joined.flush()
             del joined
-    fitted = {key: np.concatenate([record[key] for record in loaded]) for key in ("iterations", "converged", "errors")}
     write_json(metrics_out, _metrics(capture, grid, fitted, settings))
 
 

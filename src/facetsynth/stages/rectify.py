@@ -12,8 +12,8 @@ from .. import manifest as manifest_io
 from ..fileio import atomic_dir, file_key, read_frame, read_rgb, write_exr, write_json
 from ..frames import map_frames
 from ..metrics import marker_centroids, relative_errors
-from ..plane import PlaneGrid
 from ..errors import InputError
+from ..plane import PlaneGrid
 from ..rectify import native_resolution, visible_cells, warp_to_plane
 from ..render import radiance
 from ..scene import Scene
@@ -26,7 +26,7 @@ def run(hdr_manifest: str | Path, frames_dir: str | Path, geometry_out: str | Pa
     """Warp every HDR frame onto a ``resolution``-cell-wide grid over the sample.
 
     ``resolution`` "auto": the grid with as many cells as camera pixels see the sample
-    (:func:`facetsynth.rectify.native_resolution`), logged and in the metrics with the pixel count.
+    (:func:`facetsynth.rectify.native_resolution`), logged; ``resolution_rule`` in the metrics says which.
 
     Writes ``frames_dir/NNNN.exr`` (R, G, B, ``saturated``), and
     ``geometry_out`` (JSON): the grid and its (row, col) -> (x, y) mapping, the
@@ -43,8 +43,7 @@ def run(hdr_manifest: str | Path, frames_dir: str | Path, geometry_out: str | Pa
             resolution, rule = native_resolution(camera, width, height), "auto"
         except InputError as error:
             raise InputError(hdr_manifest, error.problem) from None
-        log.info("resolution auto: %d cells across (the camera sees the sample with about %d x %d pixels)",
-                 resolution, resolution, max(1, int(round(resolution * height / width))))
+        log.info("resolution auto: %d cells across, as many cells as camera pixels see the sample", resolution)
     grid = PlaneGrid(width, height, cols=resolution, rows=max(1, int(round(resolution * height / width))))
     visible = visible_cells(camera, grid)
     frames_dir, geometry_out = Path(frames_dir), Path(geometry_out)

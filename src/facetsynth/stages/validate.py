@@ -39,8 +39,8 @@ NORMALISATION = ("over the sample's pixels (every sub-pixel on the sample), line
                  "(n.i) L / r^2 of the same frames, over the sample pixels whose truth is analytic eq. 6 "
                  "(MaterialMaps.analytic; specular_pixels counts them), rendered with the rig as it truly was (its "
                  "calibration error, if any); heldout_rel_l2_regions (views only): heldout_rel_l2 per truth "
-                 "region, over the pixels whose every sub-pixel lies in it; heldout_frame_psnr_median_db / _worst_db: each frame's own PSNR over the "
-                 "sample pixels, peak = that frame's largest true radiance there, capped at 100 dB, frames "
+                 "region, over the pixels whose every sub-pixel lies in it; heldout_frame_psnr_median_db / "
+                 "_worst_db: each frame's own PSNR over the sample pixels, peak = that frame's largest true radiance there, capped at 100 dB, frames "
                  "without light on the sample skipped; the median and the minimum over the view's frames. Top-level "
                  "figures are plain means of the per-view figures (the worst too: per view in views)")
 
