@@ -282,6 +282,7 @@ def test_pipeline_hdr_and_separation(extreme_run):
     assert rel.max() < 0.015       # measured 1.2 % everywhere: cell averaging at the grazing light eq. 9 picks
     assert kd[interior & mirror].max() < 0.01
     assert (spec[diffuse] / (truth.kd[diffuse][:, None] / np.pi)).max() < 0.02   # ks = 0: the 1.2 % above
+    assert "degenerate" not in metrics_of(extreme_run["separate/metrics.json"])   # one matte quadrant of four
 
 
 def test_pipeline_model_is_finite_and_predicts_the_capture(extreme_run):
@@ -408,6 +409,9 @@ def test_all_diffuse_sample_gives_a_lambertian_model(tmp_path):
     got = read_exr(f["separate/kd.exr"])[0]["RGB"].reshape(-1, 3)
     np.testing.assert_allclose(got, np.tile(kd, (36, 1)), rtol=1e-5)          # float32 frames
     assert np.all(np.load(f["separate/specular.npy"]) <= 1e-7)          # measured 1.5e-8
+    separated = metrics_of(f["separate/metrics.json"])                  # never a silent model (issue 15)
+    assert separated["specular_signal_fraction"] == 0.0
+    assert separated["degenerate"].startswith("no specular signal: 0.0 % of the lit points")
     assert np.all(np.load(f["partial_ndf/ndf.npy"]) <= 1e-6)            # measured 3.2e-8
     model = SVBRDF.load(f["svbrdf"])                                    # ks measured 2.9e-6
     assert np.all(model.ks <= 1e-5) and not model.eta_fitted.any()

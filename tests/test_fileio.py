@@ -1,10 +1,15 @@
 """Atomic writes and clear read errors (DESIGN.md sec. 4)."""
 
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
 from facetsynth.errors import InputError
-from facetsynth.fileio import atomic_dir, read_exr, read_npy, read_rgb, write_exr, write_json, write_npy
+from facetsynth.fileio import (atomic_dir, read_exr, read_npy, read_rgb, write_exr, write_json,
+                               write_npy)
 
 
 def test_exr_round_trip_keeps_channels_and_header(tmp_path):
@@ -90,3 +95,59 @@ def test_atomic_dir_starts_afresh_when_the_inputs_changed(tmp_path):
             raise RuntimeError("crash")
     with atomic_dir(out, key={"gain": 2}) as staging:
         assert not (staging / "0000.exr").exists()
+
+
+def gone_pid() -> int:
+    """The pid of a process that has exited (and been reaped)."""
+    process = subprocess.Popen([sys.executable, "-c", "pass"])
+    process.wait()
+    return process.pid
+
+
+def test_a_write_removes_the_temporaries_killed_writers_left_in_its_folder(tmp_path):
+    """A killed job's temporaries (.NAME.PID-TID.tmpSUFFIX, of this file or another) go at the first write
+    into their folder; a live process's temporary (a concurrent writer's) and other files stay."""
+    dead, live = gone_pid(), os.getppid()
+    stale = [f".m.json.{dead}-1.tmp", f".specular.npy.{dead}-140213.tmp.npy", f".m.{dead}-2.tmp"]
+    kept = [f".m.json.{live}-1.tmp", "m.json.tmp", ".m.json.tmp", "notes.txt"]
+    for name in stale + kept:
+        (tmp_path / name).write_text("left behind")
+    write_json(tmp_path / "m.json", {"a": 1})
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(kept + ["m.json"])
+
+
+def test_atomic_dir_resumes_without_a_killed_writers_temporaries(tmp_path):
+    """A resumed staging folder loses the temporaries of killed writers (at any depth), so the published
+    folder never holds one."""
+    out, dead = tmp_path / "frames", gone_pid()
+    with pytest.raises(RuntimeError):
+        with atomic_dir(out, key={"gain": 1}) as staging:
+            (staging / "0000.exr").write_text("done")
+            (staging / f".0001.exr.{dead}-7.tmp.exr").write_text("half")     # as SIGKILL leaves it
+            (staging / "sub").mkdir()
+            (staging / f"sub/.a.npy.{dead}-7.tmp.npy").write_text("half")
+            raise RuntimeError("killed")
+    with atomic_dir(out, key={"gain": 1}) as staging:
+        (staging / "0001.exr").write_text("new")
+    assert sorted(str(p.relative_to(out)) for p in out.rglob("*")) == ["0000.exr", "0001.exr", "sub"]
+
+
+def test_atomic_dir_never_publishes_a_folder_with_a_temporary_in_it(tmp_path):
+    out = tmp_path / "frames"
+    with pytest.raises(RuntimeError, match=r"frames: not published: 1 temporary file\(s\) still in .*\.frames\.part"):
+        with atomic_dir(out, key={"gain": 1}) as staging:
+            (staging / f".0000.exr.{os.getppid()}-1.tmp.exr").write_text("being written")    # a live writer
+    assert not out.exists() and (tmp_path / ".frames.partial").is_dir()
+
+
+def test_atomic_dir_replaces_a_published_folder_whole(tmp_path):
+    """The old folder is moved aside, then deleted; one left aside by a run killed while publishing is
+    deleted by the next run."""
+    out = tmp_path / "frames"
+    with atomic_dir(out) as staging:
+        (staging / "old.exr").write_text("old")
+    (tmp_path / ".frames.replaced").mkdir()                    # a kill while publishing left it
+    with atomic_dir(out) as staging:
+        (staging / "new.exr").write_text("new")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["frames"]
+    assert [p.name for p in out.iterdir()] == ["new.exr"]

@@ -64,7 +64,7 @@ def test_predict_on_the_captures_own_manifest_reproduces_the_true_radiance(captu
     lit = truth > 1e-3 * truth.max()
     assert np.median(np.abs(pred - truth)[lit] / truth[lit]) < 0.002   # measured 6.4e-4
     reloaded = manifest.load(captured / "pred" / "manifest.json")     # the prediction is itself a capture
-    assert "saturation" not in reloaded and reloaded["frames"][0]["exposures"][0]["time"] == 1.0
+    assert reloaded["saturation"] is None and reloaded["frames"][0]["exposures"][0]["time"] == 1.0
 
 
 def test_cli_predict_writes_one_hdr_exr_per_frame(captured, capsys):

@@ -174,6 +174,33 @@ def test_import_enters_the_same_pipeline(repo, tmp_path, foreign_capture):
     assert not (workdir / "results/mine/validate").exists()                # no truth to hold out
 
 
+def jobs_to_run(workdir: Path, target: str) -> set[str]:
+    """The rules a dry run of ``target`` would run."""
+    done = snakemake(workdir, target, "--dry-run", "--quiet", "rules")
+    assert done.returncode == 0, done.stderr[-3000:]
+    return set(re.findall(r"^(\w+)\s+\d+\s*$", done.stdout, re.M)) - {"total"}
+
+
+def test_editing_an_imported_capture_reruns_it_from_capture(repo, tmp_path, foreign_capture):
+    """Issue 15: an edited frame or manifest of an imported capture is noticed (they are the capture's inputs)."""
+    folder = tmp_path / "cap"
+    shutil.copytree(foreign_capture, folder)
+    workdir = make_workdir(repo, tmp_path / "wd", f"mine\timport\t{folder}\t\n")
+    target = "results/mine/hdr/metrics.json"
+    done = snakemake(workdir, target)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert jobs_to_run(workdir, target) == set()
+    frame = folder / "frames/0004_e1.exr"
+    write_exr(frame, {"RGB": 0.5 * read_rgb(frame)}, precision="float16")      # a frame re-exposed in place
+    assert jobs_to_run(workdir, target) == {"capture", "hdr"}
+    done = snakemake(workdir, target)
+    assert done.returncode == 0, done.stderr[-3000:]
+    data = json.loads((folder / "manifest.json").read_text())
+    data["frames"][3]["light"]["intensity"] = [2.0, 2.0, 2.0]                 # a corrected light in the manifest
+    (folder / "manifest.json").write_text(json.dumps(data))
+    assert jobs_to_run(workdir, target) == {"capture", "hdr"}
+
+
 @pytest.mark.parametrize("damage, message", [
     ("missing", r"0004_e1\.exr: frame file listed in .*manifest\.json is missing"),
     ("truncated", r"0004_e1\.exr: unreadable frame"),

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -11,29 +12,41 @@ from .errors import InputError
 
 
 def _check(args: argparse.Namespace) -> None:
-    from .stages.capture import check_capture
-    m = check_capture(args.capture)
+    """Validate a capture as the pipeline reads it: a summary on stdout, each warning on stderr."""
+    from .stages.capture import inspect_capture
+    m, warnings = inspect_capture(args.capture)
     exposures = sum(len(f["exposures"]) for f in m["frames"])
+    clipping = "never clipped" if m["saturation"] is None else f"saturation {m['saturation']:g}"
     print(f"{args.capture}: valid capture, {len(m['frames'])} frames, {exposures} exposure files, "
-          f"camera {m['camera']['width']}x{m['camera']['height']}")
+          f"camera {m['camera']['width']}x{m['camera']['height']}, {clipping}, {len(warnings)} warning(s)")
+    for warning in warnings:
+        print(f"facetsynth check: warning: {args.capture}: {warning}", file=sys.stderr)
 
 
 def _predict(args: argparse.Namespace) -> None:
     from .predict import predict
-    out = predict(args.model_dir, args.manifest, args.out_dir, supersample=args.supersample)
+    out = predict(args.model_dir, args.manifest, args.out_dir, supersample=args.supersample, force=args.force)
     print(f"{args.out_dir}: {len(out['frames'])} predicted HDR frame(s) and manifest.json "
           f"(camera {out['camera']['width']}x{out['camera']['height']})")
 
 
-def _write_stencil_outputs(args: argparse.Namespace, model, scores: dict | None) -> dict:
-    """Print or write the model's JSON parameters and its BRDF Explorer shader."""
+STENCIL_OUTPUTS = ("stencil.json", "stencil.brdf")
+
+
+def _write_stencil_outputs(args: argparse.Namespace, model, scores: dict | None, source: str) -> dict:
+    """Print or write the model's JSON parameters and its BRDF Explorer shader.
+
+    ``source`` is the input file the model came from: ``--out`` may hold it
+    (with ``--force``, the folder not being empty) but never replace it.
+    """
     from .fileio import atomic_path
+    from .outputs import prepare_output_dir
     from .stencil import model_to_json, to_brdf_explorer
     params = model_to_json(model, scores)
     if args.out:
-        out = Path(args.out)
-        out.mkdir(parents=True, exist_ok=True)
-        for name, text in (("stencil.json", json.dumps(params, indent=2)), ("stencil.brdf", to_brdf_explorer(model))):
+        out = prepare_output_dir(args.out, args.command, input_files=[source], writes=STENCIL_OUTPUTS,
+                                 force=args.force)
+        for name, text in zip(STENCIL_OUTPUTS, (json.dumps(params, indent=2), to_brdf_explorer(model))):
             with atomic_path(out / name) as tmp:
                 tmp.write_text(text + "\n")
     if args.json:
@@ -44,7 +57,7 @@ def _write_stencil_outputs(args: argparse.Namespace, model, scores: dict | None)
 def _stencil_fit(args: argparse.Namespace) -> None:
     from .stencil import fit_file
     model, scores = fit_file(args.brdf)
-    params = _write_stencil_outputs(args, model, scores)
+    params = _write_stencil_outputs(args, model, scores, args.brdf)
     if not args.json:
         axes = ", ".join(f"{m['phi_a_deg']:.1f}" for m in params["modes"]) or "none"
         s = params["scores"]
@@ -54,22 +67,93 @@ def _stencil_fit(args: argparse.Namespace) -> None:
 
 
 def _stencil_edit(args: argparse.Namespace) -> None:
-    """Paper 000 sec. 5.1 / Fig. 16 edits, applied in the order given on the command line."""
+    """Paper 000 sec. 5.1 / Fig. 16 edits: every axis shift, then every width, then every colour swap.
+
+    The three act on different parameters, so their order does not change the
+    result; repeated edits of one kind apply in the order given. The argument
+    values were checked by argparse; a mode index beyond the model is an
+    InputError naming the parameter file.
+    """
     import numpy as np
 
     from .fileio import read_json
     from .stencil import edit, model_from_json
-    model = model_from_json(read_json(args.params))
+    params = Path(args.params)
+    if params.is_dir():
+        raise InputError(params, "is a folder; expected the stencil.json written by stencil-fit")
+    model = model_from_json(read_json(params), params)
     try:
         for mode, degrees in args.shift_phi or []:
-            model = edit.shift_phi_a(model, int(mode), np.deg2rad(degrees))
+            model = edit.shift_phi_a(model, mode, np.deg2rad(degrees))
         for mode, w in args.width or []:
-            model = edit.set_width(model, int(mode), w)
+            model = edit.set_width(model, mode, w)
         for i, j in args.swap_colours or []:
             model = edit.swap_mode_colours(model, i, j)
-    except (IndexError, ValueError) as exc:
-        raise InputError(args.params, str(exc)) from None
-    _write_stencil_outputs(args, model, None)
+    except IndexError as exc:
+        raise InputError(params, str(exc)) from None
+    _write_stencil_outputs(args, model, None, args.params)
+
+
+# --- argument types: a bad value is an argparse error (exit 2) naming the argument ----------------
+
+MAX_SUPERSAMPLE = 16   # s x s sub-pixels per pixel: memory and time grow as s^2; 16^2 = 256 is ample for a box filter
+FORCE_HELP = ("write into a non-empty output folder this command did not make (never into an input folder, "
+              "never over an input file)")
+
+
+def _integer(text: str) -> int:
+    """``text`` as an int, else ArgumentTypeError."""
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+
+
+def _supersample(text: str) -> int:
+    """--supersample: an integer from 1 to MAX_SUPERSAMPLE."""
+    s = _integer(text)
+    if not 1 <= s <= MAX_SUPERSAMPLE:
+        raise argparse.ArgumentTypeError(f"must be an integer from 1 to {MAX_SUPERSAMPLE}, got {s}")
+    return s
+
+
+def _mode_index(text: str) -> int:
+    """A mode index: an integer >= 0 (its range is checked against the model)."""
+    i = _integer(text)
+    if i < 0:
+        raise argparse.ArgumentTypeError(f"mode index must be >= 0, got {i}")
+    return i
+
+
+def _finite_float(text: str) -> float:
+    """A finite number (no nan, no inf)."""
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(x):
+        raise argparse.ArgumentTypeError(f"must be finite, got {text!r}")
+    return x
+
+
+def _open_unit(text: str) -> float:
+    """A support width w: 0 < w < 1."""
+    w = _finite_float(text)
+    if not 0.0 < w < 1.0:
+        raise argparse.ArgumentTypeError(f"must be between 0 and 1 (exclusive), got {w:g}")
+    return w
+
+
+def _mode_value(value_type):
+    """An argparse action for ``MODE VALUE`` pairs (appended): MODE a mode index, VALUE of ``value_type``."""
+    class ModeValue(argparse.Action):
+        def __call__(self, parser, namespace, values, option_string=None):
+            try:
+                pair = (_mode_index(values[0]), value_type(values[1]))
+            except argparse.ArgumentTypeError as exc:
+                raise argparse.ArgumentError(self, str(exc)) from None
+            setattr(namespace, self.dest, (getattr(namespace, self.dest) or []) + [pair])
+    return ModeValue
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -85,7 +169,9 @@ def main(argv: list[str] | None = None) -> int:
     pred.add_argument("model_dir", metavar="MODEL_DIR", help="fitted SVBRDF folder (results/SAMPLE/svbrdf)")
     pred.add_argument("manifest", metavar="MANIFEST", help="capture manifest (or a folder holding manifest.json)")
     pred.add_argument("out_dir", metavar="OUT_DIR", help="output folder: frames/NNNN.exr and manifest.json")
-    pred.add_argument("--supersample", type=int, default=1, help="sub-pixels per pixel side (box filter)")
+    pred.add_argument("--supersample", type=_supersample, default=1,
+                      help=f"sub-pixels per pixel side (box filter), 1 to {MAX_SUPERSAMPLE}")
+    pred.add_argument("--force", action="store_true", help=FORCE_HELP)
     pred.set_defaults(run=_predict)
 
     fit = commands.add_parser("stencil-fit", help="fit the adaptive highlight stencil model (paper 000) to a "
@@ -94,19 +180,22 @@ def main(argv: list[str] | None = None) -> int:
     fit.add_argument("--json", action="store_true", help="print the fitted model (modes, scores) as JSON")
     fit.add_argument("--out", metavar="DIR", help="write DIR/stencil.json and the BRDF Explorer shader "
                                                   "DIR/stencil.brdf")
+    fit.add_argument("--force", action="store_true", help=FORCE_HELP)
     fit.set_defaults(run=_stencil_fit)
 
     ed = commands.add_parser("stencil-edit", help="edit a fitted stencil model (paper 000 sec. 5.1): rotate an "
                                                   "anisotropy axis, change a support width, swap mode colours")
     ed.add_argument("params", help="stencil.json written by stencil-fit")
-    ed.add_argument("--shift-phi", nargs=2, type=float, action="append", metavar=("MODE", "DEG"),
+    ed.add_argument("--shift-phi", nargs=2, action=_mode_value(_finite_float), metavar=("MODE", "DEG"),
                     help="rotate the axis phi_a of MODE by DEG degrees")
-    ed.add_argument("--width", nargs=2, type=float, action="append", metavar=("MODE", "W"),
+    ed.add_argument("--width", nargs=2, action=_mode_value(_open_unit), metavar=("MODE", "W"),
                     help="set the support width w of MODE (0 < W < 1)")
-    ed.add_argument("--swap-colours", nargs=2, type=int, action="append", metavar=("I", "J"),
+    ed.add_argument("--swap-colours", nargs=2, action=_mode_value(_mode_index), metavar=("I", "J"),
                     help="swap the colours m of modes I and J")
     ed.add_argument("--json", action="store_true", help="print the edited model as JSON")
-    ed.add_argument("--out", metavar="DIR", help="write DIR/stencil.json and DIR/stencil.brdf")
+    ed.add_argument("--out", metavar="DIR", help="write DIR/stencil.json and DIR/stencil.brdf (never over "
+                                                 "the input stencil.json)")
+    ed.add_argument("--force", action="store_true", help=FORCE_HELP)
     ed.set_defaults(run=_stencil_edit)
 
     args = parser.parse_args(argv)

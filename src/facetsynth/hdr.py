@@ -44,7 +44,9 @@ def merge_exposures(values: np.ndarray, times: np.ndarray, sensor: SensorModel) 
     noise spike in a short exposure cannot pose as signal.
 
     A NaN or +Inf reading (a dead or hot sensor value) is unusable like a
-    clipped one: the pixel is merged from its other exposures.
+    clipped one: the pixel is merged from its other exposures. A negative
+    reading is below the noise floor, and a dark pixel's estimate is clipped
+    to 0: the radiance is never negative.
 
     Returns (radiance, saturated): ``saturated`` (...) is True where every
     exposure of some channel clipped (or was NaN / Inf); there the radiance is
@@ -87,6 +89,9 @@ def merge_exposures(values: np.ndarray, times: np.ndarray, sensor: SensorModel) 
     merged = np.divide(weighted, weight_sum, out=np.zeros(shape, np.float32), where=weight_sum > 0)
 
     lower_bound = clip / times.min() if sensor.saturation is not None else 0.0
+    # Negative values (read noise around a black level) are noise, not signal: below the noise floor
+    # they are never averaged in, and a dark pixel's estimate is clipped to 0, since radiance cannot be
+    # negative. The hdr stage counts them and warns (stages.hdr.Negatives).
     fallback = np.where(all_clipped, np.float32(lower_bound), np.clip(longest_value / longest_time, 0.0, None))
     radiance = np.where(weight_sum > 0, merged, fallback)
     return radiance.astype(np.float32), all_clipped.any(axis=-1)

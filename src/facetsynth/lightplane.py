@@ -40,11 +40,15 @@ class LightTriangulation:
     @classmethod
     def from_lights(cls, positions: np.ndarray) -> "LightTriangulation":
         positions = np.asarray(positions, float)
+        xy = positions[:, :2]
+        problem = (f"the {len(positions)} light(s) do not span an area of their plane (at least 3 lights, not all "
+                   "on one line, are needed)")
+        if len(xy) < 3 or np.linalg.matrix_rank(xy - xy.mean(axis=0), tol=1e-9) < 2:
+            raise ValueError(problem)
         try:
-            triangulation = Delaunay(positions[:, :2])
+            triangulation = Delaunay(xy)
         except (QhullError, ValueError) as exc:
-            raise ValueError(f"the {len(positions)} lights do not span an area of their plane "
-                             f"(at least 3 lights, not all on one line, are needed): {exc}") from None
+            raise ValueError(f"{problem}: {str(exc).strip().splitlines()[0]}") from None
         return cls(triangulation, float(np.median(positions[:, 2])))
 
     def hits(self, points: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -2,12 +2,17 @@
 
 A capture is a folder holding ``manifest.json`` and frame files; the manifest
 is validated against the published JSON schema
-(``facetsynth/schemas/capture_manifest.schema.json``) on every read. Frame
-paths are relative to the manifest's folder or absolute.
+(``facetsynth/schemas/capture_manifest.schema.json``) and for its meaning
+(:func:`validate`: finite numbers, a rotation, lights above the sample, the
+camera in front of it) on every read. Frame paths are relative to the
+manifest's folder or absolute.
 """
 
 from __future__ import annotations
 
+import difflib
+import math
+import re
 from pathlib import Path
 from typing import Any
 
@@ -19,15 +24,124 @@ from .fileio import read_json, write_json
 from .validation import validate as validate_schema
 
 
+ROTATION_TOLERANCE = 1e-5
+"""Largest entry of |R R^T - I| accepted in ``camera/R``: loose enough for an R written with 6
+decimals (rounding error <= 3e-6), tight enough to be a rotation to far below a pixel."""
+
+NEVER_CLIPPED_HINT = 'state "saturation": null for data that were never clipped'
+
+
 def validate(manifest: Any, path: str | Path | None = None) -> None:
-    """Raise InputError naming the file and the offending key if invalid."""
-    validate_schema(manifest, "capture_manifest.schema.json", path, "capture manifest")
-    K = np.asarray(manifest["camera"]["K"], dtype=float)
-    if K[2, 2] == 0 or K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise InputError(path, "invalid capture manifest at 'camera/K': focal lengths must be positive")
-    R = np.asarray(manifest["camera"]["R"], dtype=float)
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
-        raise InputError(path, "invalid capture manifest at 'camera/R': not a rotation matrix")
+    """Check a manifest's schema and meaning; raise InputError naming the file and the key's JSON path.
+
+    The one check of a capture manifest: ``facetsynth check``, the capture/import stage, ``hdr`` and
+    ``predict`` all read manifests through :func:`load`, so they can never disagree. Beyond the schema:
+    every number is finite; ``camera/K`` is [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0;
+    ``camera/R`` is a rotation (every entry of R R^T - I within :data:`ROTATION_TOLERANCE`, det R = +1);
+    the camera is in front of the sample (its centre C = -R^T t has z > 0, and the sample's centre,
+    the origin, is in front of it: t_z > 0) and the origin projects inside the image (the whole sample
+    need not: a close-up is legitimate); every light is strictly above the sample plane (z > 0) and its
+    intensity is not all zero. ``saturation`` is required: a number > 0, or null for data that were
+    never clipped. A missing required key names any close match among the keys beside it.
+    """
+    _check_finite(manifest, path)
+    try:
+        validate_schema(manifest, "capture_manifest.schema.json", path, "capture manifest")
+    except InputError as exc:
+        raise InputError(path, exc.problem + _missing_key_hint(manifest, exc.problem)) from None
+    with np.errstate(all="ignore"):    # finite values near 1e308 overflow to inf or NaN, which the checks refuse
+        _check_camera(manifest["camera"], path)
+    for q, frame in enumerate(manifest["frames"]):
+        _check_light(frame["light"], f"frames/{q}/light", path)
+
+
+def _invalid(path: str | Path | None, where: str, problem: str) -> InputError:
+    """The one-line error for the value at JSON path ``where``."""
+    return InputError(path, f"invalid capture manifest at '{where}': {problem}")
+
+
+def _check_finite(document: Any, path: str | Path | None) -> None:
+    """Every number in the document is finite (Python's json reads NaN, Infinity and 1e999 as floats)."""
+    stack: list[tuple[tuple, Any]] = [((), document)]
+    while stack:                       # iterative: a deeply nested unknown field cannot overflow the stack
+        keys, value = stack.pop()
+        if isinstance(value, dict):
+            stack.extend(((*keys, k), v) for k, v in reversed(value.items()))
+        elif isinstance(value, list):
+            stack.extend(((*keys, i), v) for i, v in reversed(list(enumerate(value))))
+        elif isinstance(value, (int, float)) and not isinstance(value, bool) and not _finite(value):
+            where = "/".join(map(str, keys)) or "(top level)"
+            raise _invalid(path, where, f"{value!r:.40} is not a finite number")
+
+
+def _finite(value: int | float) -> bool:
+    """Whether a JSON number is finite as a float (an integer beyond 1.8e308 is not)."""
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False
+
+
+def _missing_key_hint(manifest: Any, problem: str) -> str:
+    """For a missing required key: a close match among the keys beside it ("did you mean"), and for
+    ``saturation`` how to state never-clipped data. Empty for any other problem."""
+    found = re.search(r"at '([^']*)': '([^']+)' is a required property", problem)
+    if not found:
+        return ""
+    where, key = found.groups()
+    parent = manifest
+    try:
+        for part in [] if where == "(top level)" else where.split("/"):
+            parent = parent[int(part)] if isinstance(parent, list) else parent[part]
+        typos = difflib.get_close_matches(key, [k for k in parent if isinstance(k, str)], n=1, cutoff=0.75)
+    except (KeyError, IndexError, ValueError, TypeError):
+        typos = []
+    hints = [f"did you mean '{key}' for '{typo}'?" for typo in typos]
+    if key == "saturation":
+        hints.append(NEVER_CLIPPED_HINT)
+    return "".join(f"; {hint}" for hint in hints)
+
+
+def _check_camera(cam: dict[str, Any], path: str | Path | None) -> None:
+    """K, R, and the camera's place: in front of the sample, with the sample's centre in the image."""
+    K = np.asarray(cam["K"], dtype=float)
+    if K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise _invalid(path, "camera/K", "focal lengths must be positive")
+    if K[1, 0] != 0 or list(K[2]) != [0, 0, 1]:
+        raise _invalid(path, "camera/K", f"not a camera matrix: its rows 2 and 3 must be [0, fy, cy] and "
+                                         f"[0, 0, 1], not {K[1].tolist()} and {K[2].tolist()}")
+    R = np.asarray(cam["R"], dtype=float)
+    deviation, det = float(np.abs(R @ R.T - np.eye(3)).max()), float(np.linalg.det(R))
+    if not (deviation <= ROTATION_TOLERANCE and det > 0):      # written so that NaN fails
+        raise _invalid(path, "camera/R", f"not a rotation matrix (|R R^T - I| up to {deviation:.2g}, tolerance "
+                                         f"{ROTATION_TOLERANCE:g}; det R = {det:.3g}, must be +1)")
+    t = np.asarray(cam["t"], dtype=float)
+    centre = -R.T @ t
+    if not centre[2] > 0:
+        raise _invalid(path, "camera/t", f"the camera centre C = -R^T t = {_xyz(centre)} is not above the "
+                                         "sample plane (z = 0, normal +z): it needs z > 0")
+    if not t[2] > 0:
+        raise _invalid(path, "camera/t", f"the camera looks away from the sample: the sample's centre lies "
+                                         f"at depth t_z = {t[2]:.4g} m (needs > 0)")
+    col, row = _camera(cam).project(np.zeros(3))
+    if not (-0.5 <= col <= cam["width"] - 0.5 and -0.5 <= row <= cam["height"] - 0.5):
+        raise _invalid(path, "camera", f"the sample's centre projects to (col {col:.1f}, row {row:.1f}), "
+                                       f"outside the {cam['width']}x{cam['height']} image")
+
+
+def _check_light(light: dict[str, Any], where: str, path: str | Path | None) -> None:
+    """A light strictly above the sample plane, with some intensity."""
+    z = light["position"][2]
+    if not z > 0:
+        raise _invalid(path, f"{where}/position/2", f"light at z = {z:.4g} m is not above the sample plane "
+                                                   "(z = 0, normal +z): it needs z > 0")
+    if not any(light["intensity"]):
+        raise _invalid(path, f"{where}/intensity", "every channel is zero (a light must emit)")
+
+
+def _xyz(v: np.ndarray) -> str:
+    """A 3-vector as ``(x, y, z)`` with 4 significant digits."""
+    return "(" + ", ".join(f"{x + 0.0:.4g}" for x in v) + ")"   # + 0.0: no "-0"
 
 
 def load(path: str | Path, check_files: bool = True) -> dict[str, Any]:
@@ -43,17 +157,30 @@ def load(path: str | Path, check_files: bool = True) -> dict[str, Any]:
     manifest = read_json(path)
     validate(manifest, path)
     folder = path.parent.resolve()
-    for frame in manifest["frames"]:
-        for exposure in frame["exposures"]:
-            exposure["file"] = str((folder / exposure["file"]).resolve())
+    for q, frame in enumerate(manifest["frames"]):
+        for e, exposure in enumerate(frame["exposures"]):
+            exposure["file"] = _resolve(folder, exposure["file"], f"frames/{q}/exposures/{e}/file", path)
             if check_files and not Path(exposure["file"]).is_file():
                 raise InputError(exposure["file"], f"frame file listed in {path} is missing")
         if "truth" in frame and "radiance" in frame["truth"]:
-            frame["truth"]["radiance"] = str((folder / frame["truth"]["radiance"]).resolve())
+            frame["truth"]["radiance"] = _resolve(folder, frame["truth"]["radiance"], f"frames/{q}/truth/radiance",
+                                                  path)
     if "truth" in manifest and "scene" in manifest["truth"]:
-        manifest["truth"]["scene"] = str((folder / manifest["truth"]["scene"]).resolve())
+        manifest["truth"]["scene"] = _resolve(folder, manifest["truth"]["scene"], "truth/scene", path)
     manifest["_dir"] = str(folder)
     return manifest
+
+
+def _resolve(folder: Path, name: str, where: str, path: Path) -> str:
+    """The absolute path of a file the manifest names (relative to its folder), or InputError when the
+    name cannot be a path on this system (a NUL byte, a name too long)."""
+    try:
+        resolved = (folder / name).resolve()
+        resolved.is_file()                     # raises OSError for a name too long
+    except (ValueError, OSError) as exc:
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        raise _invalid(path, where, f"not a usable file name ({reason})") from None
+    return str(resolved)
 
 
 def save(path: str | Path, manifest: dict[str, Any]) -> None:
@@ -65,7 +192,11 @@ def save(path: str | Path, manifest: dict[str, Any]) -> None:
 
 def camera(manifest: dict[str, Any]) -> Camera:
     """The manifest's camera."""
-    cam = manifest["camera"]
+    return _camera(manifest["camera"])
+
+
+def _camera(cam: dict[str, Any]) -> Camera:
+    """The camera of a manifest's ``camera`` entry."""
     return Camera(width=cam["width"], height=cam["height"], K=np.asarray(cam["K"], float),
                   R=np.asarray(cam["R"], float), t=np.asarray(cam["t"], float),
                   distortion=np.asarray(cam.get("distortion", [0.0] * 5), float))

@@ -7,7 +7,7 @@ sample with Mitsuba 3 instead, on the geometry of a rig description
 (``rig/descriptions/*.yaml``: the rig's camera, LED positions, LED
 intensities and scan, through :class:`facetsynth.virtual_rig.VirtualRig`),
 and writes it as a *foreign* capture: HDR EXR frames (one exposure of time
-1.0, never clipped, so the manifest has no ``saturation``) and a
+1.0, never clipped, so the manifest states ``"saturation": null``) and a
 ``manifest.json`` valid against the published schema, with a ``provenance``
 field naming the renderer, its version and the BSDF. Import it with a
 sample-sheet row ``NAME  import  DIR``; render a held-out view with
@@ -235,7 +235,7 @@ def render_capture(rig: VirtualRig | str | Path, bsdf: dict[str, Any], out_dir: 
                    position_every: int = 1) -> dict[str, Any]:
     """Render a foreign capture of a ``size`` (width, height in metres) sample with ``bsdf`` into
     ``out_dir``: ``frames/NNNN.exr`` (R, G, B float32 radiance, one exposure of time 1.0) and
-    ``manifest.json`` (published schema; no ``saturation``: never clipped). The lights are the rig's scan
+    ``manifest.json`` (published schema; ``"saturation": null``: never clipped). The lights are the rig's scan
     (LED intensities drawn from ``seed`` as the virtual rig draws them); with ``view`` or the ``*_every``
     subsets, those of the held-out rig (:func:`capture_rig`). Returns the manifest, whose
     ``provenance`` records the renderer, the BSDF and the rate (frames/s; ``scalar_rgb`` renders a frame on
@@ -266,6 +266,7 @@ def render_capture(rig: VirtualRig | str | Path, bsdf: dict[str, Any], out_dir: 
             "sample": {"width": float(size[0]), "height": float(size[1])},
             "camera": {"width": camera.width, "height": camera.height, "K": camera.K.tolist(),
                        "R": camera.R.tolist(), "t": camera.t.tolist(), "distortion": [0.0] * 5},
+            "saturation": None,   # HDR radiance, never clipped
             "frames": frames,
             "provenance": {
                 "renderer": f"Mitsuba {mi.__version__} ({mi.variant()})",
@@ -274,7 +275,7 @@ def render_capture(rig: VirtualRig | str | Path, bsdf: dict[str, Any], out_dir: 
                 "rig": used.desc["name"], "view": None if view is None else list(view),
                 "led_every": int(led_every), "position_every": int(position_every),
                 "frames_per_second": len(plan) / seconds if seconds > 0 else None,
-                "note": "HDR radiance, never clipped (no saturation); pixel model I = rho (n.i) L / |P - x|^2",
+                "note": "HDR radiance, never clipped (saturation null); pixel model I = rho (n.i) L / |P - x|^2",
             },
         }
         manifest_io.save(staging / "manifest.json", manifest)

@@ -24,6 +24,7 @@ from tqdm import tqdm
 from . import manifest as manifest_io
 from .errors import InputError
 from .fileio import write_exr
+from .outputs import prepare_output_dir
 from .render import light_geometry, unit
 from .svbrdf import CHUNK, SVBRDF
 
@@ -76,14 +77,48 @@ def load_model(path: str | Path):
     """A fitted model folder: the SVBRDF of paper 002 (default) or the Ward baseline (``model: ward``)."""
     from .fileio import read_json
     path = Path(path)
-    if read_json(path / "model.json").get("model") == "ward":
+    if not path.is_dir():
+        found = "is a file" if path.exists() else "not found"
+        raise InputError(path, f"{found}; expected a fitted model folder holding model.json")
+    meta = read_json(path / "model.json")
+    if not isinstance(meta, dict):
+        raise InputError(path / "model.json", f"expected a JSON object, found {type(meta).__name__}")
+    if meta.get("model") == "ward":
         from .ward import WardSVBRDF
-        return WardSVBRDF.load(path)
+        try:
+            return WardSVBRDF.load(path)
+        except KeyError as exc:
+            raise InputError(path / "model.json", f"incomplete Ward model description (no {exc})") from None
     return SVBRDF.load(path)
 
 
+def input_folders(model_dir: str | Path, manifest: dict[str, Any]) -> list[Path]:
+    """The folders predict reads: the model, the capture, and every folder holding a frame or truth file."""
+    folders = {Path(model_dir), Path(manifest["_dir"])}
+    for frame in manifest["frames"]:
+        folders.update(Path(e["file"]).parent for e in frame["exposures"])
+        if "radiance" in frame.get("truth", {}):
+            folders.add(Path(frame["truth"]["radiance"]).parent)
+    return sorted(folders)
+
+
+def _finite_frame(image: np.ndarray, q: int, manifest_path: Path, model_dir: str | Path) -> np.ndarray:
+    """``image`` if every pixel is finite, else InputError naming the manifest, the frame and the model.
+
+    The manifest's numbers are checked finite when it is read and the models
+    return finite values, so this is the last guard: nothing non-finite is
+    ever written as a prediction.
+    """
+    bad = ~np.isfinite(image).all(axis=-1)
+    if bad.any():
+        row, col = np.argwhere(bad)[0]
+        raise InputError(manifest_path, f"frame {q}: {int(bad.sum())} predicted pixel(s) are NaN or Inf (first "
+                                        f"at row {row}, col {col}) with the model {model_dir}; frame not written")
+    return image
+
+
 def predict(model_dir: str | Path, manifest_path: str | Path, out_dir: str | Path, supersample: int = 1,
-            frames: list[int] | None = None, progress: bool = True) -> dict[str, Any]:
+            frames: list[int] | None = None, progress: bool = True, force: bool = False) -> dict[str, Any]:
     """Render every frame (or the listed ``frames``) of ``manifest_path`` from the SVBRDF in ``model_dir``.
 
     Writes ``out_dir/frames/NNNN.exr`` (NNNN the frame's index in the
@@ -91,7 +126,14 @@ def predict(model_dir: str | Path, manifest_path: str | Path, out_dir: str | Pat
     manifest is validated against the published schema (InputError naming the
     file on a bad one); its frame files need not exist (a manifest can describe
     views never captured).
+
+    The output folder is checked by :func:`facetsynth.outputs.prepare_output_dir`
+    once the inputs are read: it may not overlap the model, the capture or a
+    frame folder, nor be a non-empty folder predict did not make (unless
+    ``force``). Every frame is checked finite before it is written.
     """
+    if isinstance(supersample, bool) or not isinstance(supersample, (int, np.integer)) or supersample < 1:
+        raise InputError(None, f"supersample must be a positive integer, got {supersample!r}")
     manifest_path = Path(manifest_path)
     m = manifest_io.load(manifest_path, check_files=False)
     model = load_model(model_dir)
@@ -103,17 +145,19 @@ def predict(model_dir: str | Path, manifest_path: str | Path, out_dir: str | Pat
     if not renderer.mask.any():
         log.warning("%s: no pixel of this camera sees the sample", manifest_path)
     selected = range(len(m["frames"])) if frames is None else frames
-    out_dir = Path(out_dir)
-    (out_dir / "frames").mkdir(parents=True, exist_ok=True)
+    out_dir = prepare_output_dir(out_dir, "predict", input_dirs=input_folders(model_dir, m), force=force)
+    (out_dir / "frames").mkdir(exist_ok=True)
     out_frames = []
     for q in tqdm(selected, desc="predict", unit="frame", disable=not progress):
         light = m["frames"][q]["light"]
-        image = renderer.radiance(light["position"], light["intensity"])
+        image = _finite_frame(renderer.radiance(light["position"], light["intensity"]), q, manifest_path,
+                              model_dir)
         name = f"frames/{q:04d}.exr"
         write_exr(out_dir / name, {"RGB": image}, {"exposure_time": 1.0, "quantity": "predicted radiance I",
                                                    "source_frame": int(q)})
         out_frames.append({"light": light, "exposures": [{"file": name, "time": 1.0}], "source_frame": int(q)})
-    out = {"version": 1, "units": "m", "sample": m["sample"], "camera": m["camera"], "frames": out_frames,
+    out = {"version": 1, "units": "m", "sample": m["sample"], "camera": m["camera"], "saturation": None,
+           "frames": out_frames,
            "prediction": {"model": str(Path(model_dir).resolve()), "manifest": str(manifest_path.resolve()),
                           "supersample": int(supersample)}}
     manifest_io.save(out_dir / "manifest.json", out)

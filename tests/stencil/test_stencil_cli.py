@@ -48,3 +48,22 @@ def test_stencil_commands_name_the_file_on_bad_input(tmp_path, capsys):
     assert main(["stencil-edit", str(params), "--width", "3", "0.5"]) == 1
     err = capsys.readouterr().err
     assert str(params) in err and "mode 3 out of range" in err
+
+
+def test_measured_noise_is_accepted_but_bad_values_name_the_field(tmp_path, capsys):
+    """Issue 15: an RGL file whose rgb was NaN or negative fitted "perfectly" (Delta E 0.00, PSNR 100 dB), exit
+    0. Real measurements hold small negative values (cg_sunflower: 26 % of rgb, down to -6.9 % of its largest
+    value): every vendored RGL file still reads; a file beyond that noise is an error naming the field."""
+    from conftest import RGL_FILES
+    for path in RGL_FILES:
+        assert readers.read_brdf(path).max() > 0
+    sunflower = readers.read_tensor_file(RGL_FILES[[p.name for p in RGL_FILES].index("cg_sunflower_rgb.bsdf")])
+    assert (sunflower["rgb"] < 0).mean() > 0.2
+    for name, rgb, message in [("nan", np.full_like(sunflower["rgb"], np.nan), "98304 NaN or Inf value(s)"),
+                               ("negative", -sunflower["rgb"], "negative value(s)")]:
+        path = tmp_path / f"{name}.bsdf"
+        readers.write_tensor_file(path, dict(sunflower, rgb=rgb))
+        assert main(["stencil-fit", str(path)]) == 1
+        out, err = capsys.readouterr()
+        assert err.startswith(f"facetsynth stencil-fit: error: {path}: field 'rgb': ") and message in err
+        assert err.count("\n") == 1 and out == ""                      # one line, and no "perfect fit" report

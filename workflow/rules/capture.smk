@@ -4,7 +4,7 @@
 
 def capture_inputs(wildcards):
     row = SAMPLE_SHEET[wildcards.sample]
-    inputs = {"path": row["path"]}
+    inputs = {"path": row["path"], "sources": source_files(row)}
     if row["source"] == "virtual":
         inputs["rig"] = sample_rig(wildcards.sample)
     return inputs

@@ -2,6 +2,7 @@
 # here, before any job runs, with a message naming the key or the row.
 
 import csv
+import json
 from pathlib import Path
 
 import yaml
@@ -111,3 +112,27 @@ wildcard_constraints:
 def sample_rig(sample):
     """Rig description of a virtual sample."""
     return SAMPLE_SHEET[sample].get("rig", config["virtual"]["rig"])
+
+
+def source_files(row):
+    """The files a sample's capture is made from, beyond its sheet path, as inputs of rule capture: editing
+    one re-runs the chain from capture (Snakemake compares modification times). An import: its manifest and
+    every exposure file the manifest lists; a virtual scene: the measured BRDF files its regions name. A
+    manifest or scene that cannot be read yields what could be listed: the capture job then names the problem."""
+    path = Path(row["path"])
+    if row["source"] == "import":
+        manifest = path / "manifest.json" if path.is_dir() else path
+        try:
+            frames = json.loads(manifest.read_text())["frames"]
+            listed = [manifest.parent / e["file"] for f in frames for e in f["exposures"]]
+        except (OSError, ValueError, KeyError, TypeError):
+            listed = []
+        return [str(manifest)] + [str(f) for f in listed if f.is_file()]
+    if row["source"] == "virtual":
+        try:
+            regions = yaml.safe_load(path.read_text())["regions"]
+            listed = [path.parent / r["measured"]["file"] for r in regions if "measured" in r]
+        except (OSError, yaml.YAMLError, KeyError, TypeError):
+            listed = []
+        return [str(f) for f in listed if f.is_file()]
+    return []

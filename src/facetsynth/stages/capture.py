@@ -3,16 +3,23 @@
 from __future__ import annotations
 
 import logging
+import os
+from dataclasses import dataclass
 from pathlib import Path
 
-import OpenImageIO as oiio
+import numpy as np
 
 from .. import manifest as manifest_io
 from ..errors import InputError
-from ..fileio import atomic_dir
+from ..fileio import atomic_dir, read_frame
+from ..frames import map_frames
+from ..hdr import SensorModel
 from ..virtual_rig import VirtualRig, capture as virtual_capture
 
 log = logging.getLogger(__name__)
+
+CHECK_THREADS = min(4, os.cpu_count() or 1)
+"""Threads reading a capture's exposures in :func:`inspect_capture` (EXR decoding releases the GIL)."""
 
 
 def run(source: str, path: str | Path, out_dir: str | Path, rig: str | Path, seed: int, noise: bool,
@@ -32,18 +39,89 @@ def run(source: str, path: str | Path, out_dir: str | Path, rig: str | Path, see
 
 
 def check_capture(path: str | Path) -> dict:
-    """Validate a capture folder: its manifest, and every exposure file's header.
+    """Validate a capture folder (:func:`inspect_capture`), log its warnings, return the loaded manifest."""
+    manifest, warnings = inspect_capture(path)
+    for warning in warnings:
+        log.warning("%s: %s", path, warning)
+    return manifest
 
-    Every exposure file must exist and be an image of the camera's size with
-    R, G, B channels; the pixels themselves are read (and checked) by ``hdr``.
-    Returns the loaded manifest.
+
+def inspect_capture(path: str | Path) -> tuple[dict, list[str]]:
+    """Validate a capture folder as the pipeline will read it: the loaded manifest and the warnings.
+
+    The manifest goes through :func:`facetsynth.manifest.load` (schema and meaning); every exposure's
+    pixels are read with the reader the ``hdr`` stage uses (:func:`facetsynth.fileio.read_frame`), on
+    threads. Errors (InputError, one line naming the file): a file that is not a readable EXR with
+    R, G, B of the camera's size; a NaN or Inf pixel (``hdr`` refuses them); every frame dark (nothing
+    measured). Warnings, as the data still merge and fit: negative values (``hdr`` clips them to 0; a
+    few are read noise around a subtracted black level, many say the black level is wrong) and dark
+    frames (a light that did not fire, or lights nothing the camera sees; the other frames still fit).
+    Dark is as ``hdr`` has it: no value of any exposure above the sensor's noise floor (3 read-noise
+    sigmas of the manifest's ``noise``, the ``hdr`` default; 0 for noise-free data).
     """
     manifest = manifest_io.load(path)
-    width, height = manifest["camera"]["width"], manifest["camera"]["height"]
-    for frame in manifest["frames"]:
-        for exposure in frame["exposures"]:
-            _check_frame_header(exposure["file"], width, height)
-    return manifest
+    shape = (manifest["camera"]["height"], manifest["camera"]["width"], 3)
+    floor = SensorModel(read_sigma=manifest.get("noise", {}).get("read_sigma", 0.0)).noise_floor
+    per_frame = map_frames(lambda frame: [_read_exposure(e["file"], shape, floor) for e in frame["exposures"]],
+                           manifest["frames"], CHECK_THREADS, "check")
+    exposures = [stats for frame in per_frame for stats in frame]
+    _refuse_nonfinite(exposures)
+    warnings = []
+    negative = [s for s in exposures if s.negative]
+    if negative:
+        warnings.append(f"{sum(s.negative for s in negative)} negative value(s) in {len(negative)} of "
+                        f"{len(exposures)} exposure files (first: {negative[0].file}); hdr clips them to 0")
+    dark = [q for q, frame in enumerate(per_frame) if not any(s.lit for s in frame)]
+    if len(dark) == len(per_frame):
+        raise InputError(path, f"every frame is dark: no value above the noise floor ({floor:g}) in any of the "
+                               f"{len(exposures)} exposure files; nothing was measured")
+    if dark:
+        warnings.append(f"{len(dark)} of {len(per_frame)} frame(s) are dark, no value above the noise floor "
+                        f"({floor:g}) in any exposure (first: frame {dark[0]}, "
+                        f"{manifest['frames'][dark[0]]['exposures'][0]['file']})")
+    return manifest, warnings
+
+
+@dataclass(frozen=True)
+class ExposureStats:
+    """What :func:`inspect_capture` found in one exposure file's pixels."""
+
+    file: str
+    nonfinite: int                           # pixels with a NaN or Inf channel
+    first_nonfinite: tuple[int, int] | None  # (row, col) of the first
+    negative: int                            # negative values (channels) of finite pixels
+    lit: bool                                # some value above the noise floor
+
+
+def _read_exposure(file: str, shape: tuple[int, int, int], floor: float) -> ExposureStats:
+    """Read one exposure as ``hdr`` does; count its non-finite pixels and negative values, and whether some
+    value is above the noise ``floor``."""
+    try:
+        rgb, _ = read_frame(file, require_finite=False)
+    except InputError as exc:
+        raise InputError(file, f"unreadable frame: {exc.problem}") from None
+    if rgb.shape != shape:
+        raise InputError(file, f"frame is {rgb.shape[1]}x{rgb.shape[0]}, the manifest's camera is "
+                               f"{shape[1]}x{shape[0]}")
+    lowest, highest = float(rgb.min()), float(rgb.max())   # NaN if any pixel is NaN: the fast path is all finite
+    if np.isfinite(lowest) and np.isfinite(highest):
+        negative = 0 if lowest >= 0 else int((rgb < 0).sum())
+        return ExposureStats(file=file, nonfinite=0, first_nonfinite=None, negative=negative, lit=highest > floor)
+    finite = np.isfinite(rgb).all(axis=-1)
+    bad = np.argwhere(~finite)
+    return ExposureStats(file=file, nonfinite=len(bad), first_nonfinite=(int(bad[0][0]), int(bad[0][1])),
+                         negative=int((rgb[finite] < 0).sum()), lit=bool((rgb[finite] > floor).any()))
+
+
+def _refuse_nonfinite(exposures: list[ExposureStats]) -> None:
+    """InputError naming the first exposure file with a NaN or Inf pixel, with the counts."""
+    bad = [s for s in exposures if s.nonfinite]
+    if bad:
+        first = bad[0]
+        row, col = first.first_nonfinite
+        raise InputError(first.file, f"{first.nonfinite} pixel(s) are NaN or Inf (first at row {row}, col {col}); "
+                                     f"{sum(s.nonfinite for s in bad)} such pixel(s) in {len(bad)} of "
+                                     f"{len(exposures)} exposure files")
 
 
 def import_capture(path: str | Path, out_dir: str | Path) -> None:
@@ -52,16 +130,3 @@ def import_capture(path: str | Path, out_dir: str | Path) -> None:
     log.info("imported %d frames from %s", len(manifest["frames"]), path)
     with atomic_dir(out_dir) as staging:
         manifest_io.save(staging / "manifest.json", manifest)
-
-
-def _check_frame_header(file: str, width: int, height: int) -> None:
-    image = oiio.ImageInput.open(file)
-    if image is None:
-        raise InputError(file, f"unreadable frame ({oiio.geterror().strip() or 'unknown format'})")
-    spec = image.spec()
-    image.close()
-    if (spec.width, spec.height) != (width, height):
-        raise InputError(file, f"frame is {spec.width}x{spec.height}, the manifest's camera is {width}x{height}")
-    missing = {"R", "G", "B"} - set(spec.channelnames)
-    if missing:
-        raise InputError(file, f"frame has no {'/'.join(sorted(missing))} channel(s)")

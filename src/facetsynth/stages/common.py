@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -92,6 +93,14 @@ def part_records(records: list) -> tuple[np.ndarray, dict]:
                     else np.sum([loaded[k][key] for k in order]))
               for key in loaded[0] if key != "start"} if loaded else {}
     return order, joined
+
+
+def flag_degenerate(metrics: dict, reason: str, log: logging.Logger) -> None:
+    """A condition that still allows a weaker model (issue 15; docs/decisions.md, "Degenerate captures"): a
+    WARNING in the stage's log and ``degenerate`` in its metrics (several reasons joined by "; "), never a
+    silent model."""
+    log.warning("DEGENERATE: %s", reason)
+    metrics["degenerate"] = "; ".join(filter(None, [metrics.get("degenerate"), reason]))
 
 
 def tiles(n: int, size: int = TILE_POINTS):

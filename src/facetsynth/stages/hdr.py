@@ -4,17 +4,20 @@ from __future__ import annotations
 
 import logging
 import os
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
 from .. import manifest as manifest_io
 from ..errors import InputError
-from ..fileio import atomic_dir, file_key, read_frame, read_rgb, write_exr, write_json
+from ..fileio import atomic_dir, file_key, read_exr, read_rgb, write_exr, write_json
 from ..frames import map_frames
 from ..hdr import SensorModel, merge_exposures
+from ..lightplane import LightTriangulation
 from ..metrics import relative_errors
+from .common import flag_degenerate
 
 log = logging.getLogger(__name__)
 
@@ -26,30 +29,37 @@ def run(capture_dir: str | Path, frames_dir: str | Path, manifest_out: str | Pat
     The output manifest describes the merged frames as a capture with one
     exposure of time 1 per frame and no clipping, so it is itself importable.
     Frames get channels R, G, B and ``saturated`` (1 where every exposure clipped); they are merged on
-    ``threads`` threads.
+    ``threads`` threads. Negative exposure values are clipped (:class:`Negatives`): their count is
+    in the metrics (``negative_values``) and each frame's header, and a WARNING names the first file.
+    A run killed at any point resumes in the staging folder, to the same bytes.
     """
     capture = manifest_io.load(capture_dir)
+    manifest_path = Path(capture["_dir"]) / "manifest.json"
+    _check_lights(capture, manifest_path)
     noise = capture.get("noise", {})
     sensor = SensorModel(saturation=capture.get("saturation"), read_sigma=noise.get("read_sigma", 0.0),
                          shot_gain=noise.get("shot_gain", 0.0), floor_sigmas=floor_sigmas,
                          saturation_margin=saturation_margin)
     shape = (capture["camera"]["height"], capture["camera"]["width"], 3)
     frames_dir, manifest_out = Path(frames_dir), Path(manifest_out)
-    key = {"capture": file_key(Path(capture["_dir"]) / "manifest.json"), "sensor": asdict(sensor)}
+    key = {"capture": file_key(manifest_path), "sensor": asdict(sensor)}
     with atomic_dir(frames_dir, key) as staging:
 
-        def merge_frame(job: tuple[int, dict]) -> tuple[dict, int, np.ndarray | None]:
-            """Merge frame q (or read it back, if merged before an interruption): its manifest entry, its
-            saturated pixel count and its relative errors against the truth (None without truth)."""
+        def merge_frame(job: tuple[int, dict]) -> Merged:
+            """Merge frame q (or read it back, if merged before an interruption)."""
             q, frame = job
             times = np.array([e["time"] for e in frame["exposures"]])
             out = staging / f"{q:04d}.exr"
-            if out.exists():
-                merged, saturated = read_frame(out)
-            else:
-                values = np.stack([_read_exposure(e["file"], shape) for e in frame["exposures"]])
+            merged_before = _read_merged(out) if out.exists() else None
+            if merged_before is None:
+                files = [e["file"] for e in frame["exposures"]]
+                values = np.stack([_read_exposure(file, shape) for file in files])
                 merged, saturated = merge_exposures(values, times, sensor)
-                write_exr(out, {"RGB": merged, "saturated": saturated.astype(np.float32)}, precision="float24")
+                write_exr(out, {"RGB": merged, "saturated": saturated.astype(np.float32)},
+                          header=_negatives(files, values).header(), precision="float24")
+                # Metrics from the stored (PXR24-rounded) values, as a resumed run reads them back.
+                merged_before = _read_merged(out)
+            merged, saturated, negatives = merged_before
             out_frame = {"light": frame["light"], "exposures": [{"file": f"{frames_dir.name}/{q:04d}.exr", "time": 1.0}]}
             errors = None
             if "radiance" in frame.get("truth", {}):
@@ -58,24 +68,102 @@ def run(capture_dir: str | Path, frames_dir: str | Path, manifest_out: str | Pat
                 above_floor = truth * times.max() > sensor.noise_floor
                 errors = relative_errors(merged, truth, above_floor & ~saturated[..., None], sample=4096)
                 out_frame["truth"] = {"radiance": os.path.relpath(frame["truth"]["radiance"], manifest_out.parent)}
-            return out_frame, int(saturated.sum()), errors
+            # Dark: no pixel above the noise floor in the longest exposure (0 for a noise-free HDR import).
+            dark = not (saturated.any() or (merged * times.max() > sensor.noise_floor).any())
+            return Merged(out_frame, int(saturated.sum()), negatives, errors, dark)
 
         per_frame = map_frames(merge_frame, list(enumerate(capture["frames"])), threads, "hdr")
-    frames = [frame for frame, _, _ in per_frame]
-    saturated_total = sum(count for _, count, _ in per_frame)
-    errors = [e for _, _, e in per_frame if e is not None]
-    hdr_manifest = {k: v for k, v in capture.items() if k not in ("frames", "saturation", "_dir")}
+        dark = [q for q, m in enumerate(per_frame) if m.dark]
+        if len(dark) == len(per_frame):
+            raise InputError(manifest_path, f"all {len(dark)} frames are dark (no pixel above the sensor's noise "
+                                            f"floor, {sensor.noise_floor:g}): nothing was measured; check that "
+                                            "the lights fire, the lens is uncovered and the exposures are long "
+                                            "enough")
+    frames = [m.frame for m in per_frame]
+    saturated_total = sum(m.saturated for m in per_frame)
+    negatives = Negatives.total([m.negatives for m in per_frame])
+    errors = [m.errors for m in per_frame if m.errors is not None]
+    hdr_manifest = {**{k: v for k, v in capture.items() if k not in ("frames", "_dir")}, "saturation": None}
     hdr_manifest["frames"] = frames
     hdr_manifest["noise"] = {"read_sigma": 0.0, "shot_gain": 0.0}
     if "scene" in capture.get("truth", {}):
         hdr_manifest["truth"] = {"scene": os.path.relpath(capture["truth"]["scene"], manifest_out.parent)}
     manifest_io.save(manifest_out, hdr_manifest)
 
-    metrics = {"ground_truth": bool(errors), "frames": len(frames), "saturated_pixels": saturated_total}
+    metrics = {"ground_truth": bool(errors), "frames": len(frames), "saturated_pixels": saturated_total,
+               "negative_values": negatives.count, "dark_frames": len(dark)}
+    if dark:
+        flag_degenerate(metrics, f"{len(dark)} of {len(frames)} frames are dark (no pixel above the noise floor; "
+                                 f"the first: frame {dark[0]}, {capture['frames'][dark[0]]['exposures'][0]['file']}): "
+                                 "a light that did not fire is fitted as black reflectance in its directions; "
+                                 "recapture those lights, or drop the frames from the manifest", log)
+    if negatives.count:
+        log.warning("%d exposure values are negative (first in %s): taken as read noise around the black "
+                    "level, below the noise floor, and clipped to 0", negatives.count, negatives.first_file)
     if errors:
         metrics["median_rel_error"] = float(np.median(np.concatenate(errors)))
         log.info("HDR median relative error against the true radiance: %.5f", metrics["median_rel_error"])
     write_json(metrics_out, metrics)
+
+
+def _check_lights(capture: dict, manifest_path: Path) -> None:
+    """The method interpolates each point's samples over one triangulation of the lights in their plane
+    (:class:`facetsynth.lightplane.LightTriangulation`, resample): lights that span no area (fewer than 3,
+    or all on one line) are an error here, before any frame is merged."""
+    try:
+        LightTriangulation.from_lights(manifest_io.light_positions(capture))
+    except ValueError as exc:
+        raise InputError(manifest_path, f"too few lights for the method: {exc}; capture under lights spread over "
+                                        "a plane above the sample (the paper: 20 x 24 = 480)") from None
+
+
+class Merged(NamedTuple):
+    """One merged frame: its manifest entry, saturated pixel count, its exposures' negative values, its
+    relative errors against the truth (None without truth) and whether it is dark."""
+    frame: dict
+    saturated: int
+    negatives: "Negatives"
+    errors: np.ndarray | None
+    dark: bool
+
+
+@dataclass(frozen=True)
+class Negatives:
+    """Exposure values below 0 (of a frame, or of the capture): how many, and the first file holding one.
+
+    A sensor's read noise around its black level makes dark values negative: they are noise, not
+    signal, so the merge keeps clipping them (:func:`facetsynth.hdr.merge_exposures`), but says so.
+    """
+    count: int = 0
+    first_file: str | None = None
+
+    def header(self) -> dict:
+        """The merged frame's EXR attributes: a resumed run reads the count back from the frame."""
+        return {"negative_values": self.count} | ({"negative_file": self.first_file} if self.count else {})
+
+    @classmethod
+    def from_header(cls, header: dict) -> "Negatives":
+        return cls(header["negative_values"], header.get("negative_file"))
+
+    @classmethod
+    def total(cls, parts: list["Negatives"]) -> "Negatives":
+        """The capture's count, and the first file in frame order."""
+        return cls(sum(n.count for n in parts), next((n.first_file for n in parts if n.count), None))
+
+
+def _negatives(files: list[str], values: np.ndarray) -> Negatives:
+    """The negative values of a frame's exposures ``values`` (E, H, W, 3) read from ``files``."""
+    counts = [int(np.count_nonzero(v < 0)) for v in values]
+    return Negatives.total([Negatives(c, f) for c, f in zip(counts, files)])
+
+
+def _read_merged(path: Path) -> tuple[np.ndarray, np.ndarray, Negatives] | None:
+    """A frame merged before an interruption: radiance, saturated mask and its exposures' negative values;
+    None for a frame without the count (merged by an older version: merge it again)."""
+    channels, header = read_exr(path)
+    if "negative_values" not in header:
+        return None
+    return channels["RGB"], channels["saturated"] > 0, Negatives.from_header(header)
 
 
 def _read_exposure(file: str, shape: tuple[int, ...]) -> np.ndarray:

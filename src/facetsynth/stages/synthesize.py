@@ -24,7 +24,7 @@ from ..cluster import material_groups
 from ..errors import InputError
 from ..fileio import read_exr, read_json, write_json, write_npy
 from ..grid import DirectionGrid
-from .common import RectifiedCapture, tiles
+from .common import RectifiedCapture, flag_degenerate, tiles
 
 log = logging.getLogger(__name__)
 
@@ -200,20 +200,20 @@ def run(geometry: str | Path, ndf: str | Path, confidence: str | Path, grid_path
     metrics["orientation_concentration"] = concentration
     metrics["insufficient_rotation_diversity"] = bool(concentration is not None
                                                       and concentration >= syn.SINGLE_ORIENTATION)
+    stalled = f"{metrics['stalled_representatives']} of {len(reps)} representatives stalled"
     if metrics["insufficient_rotation_diversity"]:
-        log.warning("INSUFFICIENT ROTATION DIVERSITY: the anisotropic exemplars' lobe axes all point one way "
-                    "(concentration %.2f >= %.2f), so no exemplar shows this material at another rotation; %d of %d "
-                    "representatives stalled (no match within relative error %.2f, coverage before fill %.2f) "
-                    "and the others may be completed from wrong rotations. Capture the sample at further rotations "
-                    "(e.g. turned by 60 and 120 deg) and list each capture in the sample sheet with rotation_of = "
-                    "this sample: they join its exemplars (paper 002 sec. 4).", concentration,
-                    syn.SINGLE_ORIENTATION, metrics["stalled_representatives"], len(reps), max_relative_error,
-                    metrics["coverage_before_fill"])
+        flag_degenerate(metrics, f"INSUFFICIENT ROTATION DIVERSITY: the anisotropic exemplars' lobe axes all point "
+                        f"one way (concentration {concentration:.2f} >= {syn.SINGLE_ORIENTATION:.2f}), so no exemplar "
+                        f"shows this material at another rotation; {stalled} (no match within relative error "
+                        f"{max_relative_error:.2f}, coverage before fill {metrics['coverage_before_fill']:.2f}) and "
+                        "the others may be completed from wrong rotations. Capture the sample at further rotations "
+                        "(e.g. turned by 60 and 120 deg) and list each capture in the sample sheet with rotation_of = "
+                        "this sample: they join its exemplars (paper 002 sec. 4).", log)
     elif metrics["stalled_majority"]:
-        log.warning("%d of %d representatives stalled (no exemplar within relative error %.2f) although the "
-                    "lobe axes vary (concentration %s): noisy or narrow partial NDFs, not missing rotations; their "
-                    "NDFs are push-pull extensions beyond the merged domain.", metrics["stalled_representatives"],
-                    len(reps), max_relative_error, "n/a" if concentration is None else f"{concentration:.2f}")
+        flag_degenerate(metrics, f"{stalled} (no exemplar within relative error {max_relative_error:.2f}) although "
+                        f"the lobe axes vary (concentration "
+                        f"{'n/a' if concentration is None else f'{concentration:.2f}'}): noisy or narrow partial NDFs, "
+                        "not missing rotations; their NDFs are push-pull extensions beyond the merged domain.", log)
     log.info("synthesize metrics: %s", {k: v for k, v in metrics.items() if not isinstance(v, list)})
     write_json(metrics_out, metrics)
 

@@ -2,7 +2,9 @@
 
 JSON: angles in degrees (``phi_a_deg``), everything else as in
 :class:`facetsynth.stencil.model.StencilModel`; ``scores`` holds delta_e,
-rmse, psnr_db, ssim, fit_seconds.
+rmse, psnr_db, ssim, fit_seconds. :func:`model_from_json` checks a parameter
+file's structure and values first (:func:`check_params`): a bad one is an
+InputError naming the file and the key.
 
 ``.brdf`` (BRDF Explorer, "analytic" type): every fitted value is a GUI
 parameter (``float name min max default``) so the sec. 5.1 edits can be done
@@ -15,11 +17,15 @@ to Python and compare it with :func:`facetsynth.stencil.model.evaluate`.
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
+
+from facetsynth.errors import InputError
 
 from .model import COS_FLOOR, Mode, StencilModel
 
-__all__ = ["model_to_json", "model_from_json", "to_brdf_explorer"]
+__all__ = ["model_to_json", "model_from_json", "check_params", "to_brdf_explorer"]
 
 _SCORE_KEYS = ("delta_e", "rmse", "psnr_db", "ssim", "fit_seconds")
 
@@ -46,8 +52,91 @@ def model_to_json(model, scores=None):
     return out
 
 
-def model_from_json(d):
-    """Inverse of :func:`model_to_json` (scores are ignored)."""
+def _preview(v, n=40):
+    """A short repr of a JSON value for error messages."""
+    s = json.dumps(v) if not isinstance(v, float) else repr(v)
+    return s if len(s) <= n else s[:n - 3] + "..."
+
+
+def _get(d, key, where):
+    """``d[key]``, else ValueError '<where>: missing'."""
+    if key not in d:
+        raise ValueError(f"{where}: missing")
+    return d[key]
+
+
+def _number(v, where, lo=-np.inf, hi=np.inf, open_ends=False):
+    """``v`` as a finite float in [lo, hi] ((lo, hi) with ``open_ends``), else ValueError naming ``where``."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise ValueError(f"{where}: expected a number, found {_preview(v)}")
+    try:
+        v = float(v)                       # an integer beyond 1.8e308 cannot be one
+    except OverflowError:
+        v = float("inf")
+    if not np.isfinite(v):
+        raise ValueError(f"{where}: must be finite, found {v}")
+    inside = lo < v < hi if open_ends else lo <= v <= hi
+    if not inside:
+        ends = "()" if open_ends else "[]"
+        raise ValueError(f"{where}: {v:g} is outside {ends[0]}{lo:g}, {hi:g}{ends[1]}")
+    return v
+
+
+def _key(d, key, at="", n=None, **bounds):
+    """``d[key]`` checked by :func:`_number` (a list of ``n`` of them with ``n``); ``at`` locates ``d``."""
+    where = f"{at}['{key}']" if at else f"'{key}'"
+    v = _get(d, key, where)
+    if n is None:
+        return _number(v, where, **bounds)
+    if not isinstance(v, list) or len(v) != n:
+        raise ValueError(f"{where}: expected a list of {n} number(s), found {_preview(v)}")
+    return [_number(x, f"{where}[{i}]", **bounds) for i, x in enumerate(v)]
+
+
+def check_params(d):
+    """Raise ValueError naming the first bad key of stencil parameters ``d`` (as written by model_to_json).
+
+    Structure: an object with ``modes`` (a list of objects), ``beta`` (one
+    value per mode but the last), ``r``, ``m_bg`` (3), ``k``, ``alpha_s``,
+    ``a_s``, ``b_s``, ``dw_ratio``; every number finite. Ranges are those the
+    fit produces and the model needs: 0 < w < 1, beta in [0, 1], colours m and
+    m_bg, ks, k, alpha, alpha_s and dw_ratio >= 0.
+    """
+    if not isinstance(d, dict):
+        raise ValueError(f"expected a JSON object, found {type(d).__name__}")
+    modes = _get(d, "modes", "'modes'")
+    if not isinstance(modes, list):
+        raise ValueError(f"'modes': expected a list, found {_preview(modes)}")
+    for i, m in enumerate(modes):
+        at = f"'modes'[{i}]"
+        if not isinstance(m, dict):
+            raise ValueError(f"{at}: expected an object, found {_preview(m)}")
+        for key in ("phi_a_deg", "a", "b", "kd"):
+            _key(m, key, at)
+        _key(m, "w", at, lo=0.0, hi=1.0, open_ends=True)
+        for key in ("ks", "alpha"):
+            _key(m, key, at, lo=0.0)
+        _key(m, "m", at, n=3, lo=0.0)
+        if not isinstance(m.get("retro", False), bool):
+            raise ValueError(f"{at}['retro']: expected true or false, found {_preview(m['retro'])}")
+    _key(d, "beta", n=max(len(modes) - 1, 0), lo=0.0, hi=1.0)
+    _key(d, "m_bg", n=3, lo=0.0)
+    for key in ("r", "a_s", "b_s"):
+        _key(d, key)
+    for key in ("k", "alpha_s", "dw_ratio"):
+        _key(d, key, lo=0.0)
+
+
+def model_from_json(d, path=None):
+    """Inverse of :func:`model_to_json` (scores are ignored).
+
+    ``d`` is checked first (:func:`check_params`): a bad one is an InputError
+    naming ``path`` and the key.
+    """
+    try:
+        check_params(d)
+    except ValueError as exc:
+        raise InputError(path, f"not valid stencil parameters: {exc}") from None
     modes = tuple(Mode(phi_a=float(np.deg2rad(m["phi_a_deg"])), w=m["w"], a=m["a"], b=m["b"], kd=m["kd"],
                        ks=m["ks"], alpha=m["alpha"], m=tuple(m["m"]), retro=bool(m.get("retro", False)))
                   for m in d["modes"])

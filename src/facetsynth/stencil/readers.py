@@ -3,7 +3,10 @@
 Every reader returns the BRDF evaluated on the UTIA grid
 (:mod:`facetsynth.stencil.grid`): float64 ``(3, 6, 48, 6, 48)``, linear RGB,
 1/sr, without the cosine factor.  Bad files raise
-:class:`facetsynth.errors.InputError` naming the file and the problem.
+:class:`facetsynth.errors.InputError` naming the file and the problem:
+also bad *values*, named by field with counts (NaN or Inf anywhere; negative
+values beyond measurement noise, :data:`NOISE_FRACTION`; no positive value,
+which would fit a zero model "perfectly").
 
 Formats
 -------
@@ -40,10 +43,45 @@ __all__ = [
 _UTIA_BYTES = int(np.prod(grid.SHAPE)) * 8
 
 
-def _check_finite(path, arr):
-    if not np.all(np.isfinite(arr)):
-        raise InputError(path, "contains NaN or Inf values")
+NOISE_FRACTION = 0.25
+"""Negative BRDF values down to -NOISE_FRACTION x the largest value are measurement noise.
+
+Real measurements hold small negative values where the signal is near 0
+(background subtraction): in the RGL files up to 8.6 % of the channel's
+largest value (cg_sunflower, blue) and 6.9 % of the file's largest. A value
+more negative than 25 % of the largest, or a file with no positive value,
+is not noise but broken data (a sign error, a wrong scale, a wrong field).
+"""
+
+
+def _check_finite(path, field, arr):
+    """``arr``, or InputError naming ``field`` and counting its NaN or Inf values."""
+    bad = int(np.count_nonzero(~np.isfinite(arr)))
+    if bad:
+        raise InputError(path, f"field {field!r}: {bad} NaN or Inf value(s) of {arr.size}")
     return arr
+
+
+def _check_values(path, field, arr, noise=False):
+    """``arr`` if finite and non-negative, else InputError naming ``field`` with counts.
+
+    With ``noise`` (measured radiometric data), negative values are accepted
+    while they stay within :data:`NOISE_FRACTION` of the largest value.
+    """
+    _check_finite(path, field, arr)
+    neg = int(np.count_nonzero(arr < 0))
+    if not neg:
+        return arr
+    low, top = float(arr.min()), float(arr.max())
+    if noise and top > 0 and -low <= NOISE_FRACTION * top:
+        return arr
+    if not noise:
+        why = "expected none"
+    elif top <= 0:
+        why = "and no positive value: not a reflectance"
+    else:
+        why = f"more than measurement noise: below -{NOISE_FRACTION:.0%} of the largest value {top:.3g}"
+    raise InputError(path, f"field {field!r}: {neg} negative value(s) of {arr.size}, down to {low:.3g} ({why})")
 
 
 def _read_bytes(path):
@@ -62,7 +100,7 @@ def read_utia_bin(path):
         what = "truncated" if len(raw) < _UTIA_BYTES else "too long"
         raise InputError(p, f"wrong size for a UTIA .bin ({what}): {len(raw)} bytes, expected {_UTIA_BYTES}")
     arr = np.frombuffer(raw, dtype="<f8").reshape(grid.SHAPE).astype(float)
-    return _check_finite(p, arr)
+    return _check_values(p, "rgb", arr, noise=True)
 
 
 def write_utia_bin(path, brdf):
@@ -81,7 +119,7 @@ def read_utia_exr(path):
         raise InputError(p, f"no RGB channels (has {sorted(channels)})")
     if img.shape != (288, 288, 3):
         raise InputError(p, f"wrong image size {img.shape[1]}x{img.shape[0]}, expected 288x288")
-    return _check_finite(p, grid.wrap(np.asarray(img, float)))
+    return _check_values(p, "RGB", grid.wrap(np.asarray(img, float)), noise=True)
 
 
 def write_utia_exr(path, brdf):
@@ -123,8 +161,14 @@ def read_tensor_file(path):
                                     f"file has {len(raw)}")
             fields[name] = np.frombuffer(raw, dtype=dt, count=nbytes // dt.itemsize,
                                          offset=offset).reshape(shape).astype(dt.newbyteorder("="))
+    except InputError:
+        raise
     except struct.error:
         raise InputError(p, "truncated tensor_file header") from None
+    except UnicodeDecodeError:
+        raise InputError(p, "damaged tensor_file header: a field name is not UTF-8") from None
+    except (ValueError, OverflowError) as exc:   # a shape, offset or size no array can have
+        raise InputError(p, f"damaged tensor_file header: {exc}") from None
     return fields
 
 
@@ -198,6 +242,43 @@ def _bilinear(table2d_slices, sl, u):
     return (1 - fy) * ((1 - fx) * v00 + fx * v10) + fy * ((1 - fx) * v01 + fx * v11)
 
 
+def _check_axis(path, field, values, lo, hi):
+    """A parameter axis: finite, strictly increasing, within [lo, hi] (float32 slack)."""
+    _check_finite(path, field, values)
+    if values.size == 0 or np.any(np.diff(values) <= 0) or values[0] < lo - 1e-5 or values[-1] > hi + 1e-5:
+        raise InputError(path, f"field {field!r}: expected increasing angles within [{lo:.4g}, {hi:.4g}], "
+                               f"found {np.array2string(values, precision=4, threshold=8)}")
+
+
+def _check_rgl_values(path, f, vndf, rgb):
+    """The values of an RGL file's fields: what :meth:`RGLBRDF.eval` needs to give finite, meaningful fr.
+
+    Angles finite and increasing; ``ndf``, ``sigma`` and ``vndf`` finite and
+    non-negative, ``sigma`` positive (eval divides by it), every ``vndf``
+    slice with some mass (its warp is normalised by it) and every table at
+    least 2 x 2; ``rgb`` finite with negative values only as measurement noise
+    (:data:`NOISE_FRACTION`) and some positive value.
+    """
+    _check_axis(path, "theta_i", f["theta_i"].astype(float), 0.0, np.pi / 2)
+    _check_axis(path, "phi_i", f["phi_i"].astype(float), -np.pi, 2 * np.pi)
+    if f["jacobian"].size == 0:
+        raise InputError(path, "field 'jacobian': empty")
+    for name, table in (("ndf", f["ndf"]), ("sigma", f["sigma"]), ("vndf", vndf), ("rgb", rgb)):
+        if min(table.shape[-2:]) < 2:
+            raise InputError(path, f"field {name!r}: tables of at least 2x2 needed, found shape {table.shape}")
+    for name, table in (("ndf", f["ndf"]), ("sigma", f["sigma"]), ("vndf", vndf)):
+        _check_values(path, name, np.asarray(table, float))
+    zero = int(np.count_nonzero(f["sigma"] == 0))
+    if zero:
+        raise InputError(path, f"field 'sigma': {zero} zero value(s); the projected area must be positive")
+    empty = np.flatnonzero(vndf.reshape(vndf.shape[0] * vndf.shape[1], -1).sum(axis=1) <= 0)
+    if empty.size:
+        raise InputError(path, f"field 'vndf': {empty.size} slice(s) hold no mass (first: slice {empty[0]})")
+    _check_values(path, "rgb", rgb, noise=True)
+    if not np.any(rgb > 0):
+        raise InputError(path, "field 'rgb': no positive value (no reflectance to fit)")
+
+
 class RGLBRDF:
     """An RGL (Dupuy & Jakob 2018) measured BRDF loaded from a tensor file."""
 
@@ -216,6 +297,7 @@ class RGLBRDF:
         if vndf.ndim != 4 or vndf.shape[:2] != (nphi, nth) or rgb.shape[:3] != (nphi, nth, 3) \
                 or rgb.ndim != 5 or f["ndf"].ndim != 2 or f["sigma"].ndim != 2:
             raise InputError(path, f"inconsistent field shapes: vndf {vndf.shape}, rgb {rgb.shape}")
+        _check_rgl_values(path, f, vndf, rgb)
         self.description = bytes(f.get("description", np.zeros(0, np.uint8))).decode("utf-8", "replace")
         self.isotropic = nphi <= 2
         self.jacobian = bool(f["jacobian"][0])
@@ -328,7 +410,12 @@ def read_merl_table(path):
     if len(raw) != 12 + 8 * n:
         raise InputError(p, f"wrong size for a MERL .binary: {len(raw)} bytes, expected {12 + 8 * n}")
     t = np.frombuffer(raw, "<f8", count=n, offset=12).reshape(3, *dims) * _MERL_SCALE[:, None, None, None]
-    return np.where(np.isfinite(t), t, -1.0)
+    # negative entries are MERL's own "not measured" marker (merl_eval reads them as 0); NaN or Inf are not
+    _check_finite(p, "rgb", t)
+    if not np.any(t > 0):
+        raise InputError(p, f"field 'rgb': no positive value; all {t.size} entries are 0 or negative "
+                            "(MERL's 'not measured' marker)")
+    return t
 
 
 def write_merl_table(path, table):
@@ -382,4 +469,9 @@ def read_brdf(path):
         raise InputError(p, f"unknown BRDF file type {p.suffix!r} (expected {sorted(readers)})")
     if not p.exists():
         raise InputError(p, "file does not exist")
-    return fn(p)
+    if p.is_dir():
+        raise InputError(p, "is a folder, not a BRDF file")
+    brdf = fn(p)
+    if not np.any(brdf > 0):
+        raise InputError(p, "no reflectance: the BRDF is 0 at every direction pair of the UTIA grid")
+    return brdf

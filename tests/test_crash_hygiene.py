@@ -1,0 +1,199 @@
+"""Crash hygiene (issue 15, part 6) and negative exposure values (issue 15).
+
+A job killed with SIGKILL cannot clean up. These tests kill the ``hdr`` and ``partial_ndf`` stages in a
+subprocess at chosen points (mid-write of a file: its temporary written, not renamed; and between
+files), rerun the stage in-process on the same paths, and check that the outputs and metrics are those
+of an uninterrupted run byte for byte, and that no temporary file is left anywhere.
+
+The capture: the demo scene on the tiny test rig (30 frames of 3 exposures, 120 x 80, sensor noise on),
+with negative values written into two exposures (:data:`NEGATIVES`); rectified to 16 x 16 points for
+``partial_ndf``, which runs in tiles of 64 points (4 tiles) on an 8 x 32 direction grid.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from facetsynth.fileio import read_exr, write_exr
+
+# (frame, exposure, pixels made negative, channels): 10 pixels x 3 channels + 5 pixels x 1 channel.
+NEGATIVES = [(1, 2, 10, 3), (4, 0, 5, 1)]
+NEGATIVE_COUNT = 35
+TILE_POINTS = 64
+
+# Runs a stage, killing the process with SIGKILL on the k-th call of a function. With "truncate", the
+# file that call is given (os.replace's source: a finished temporary) is first cut to half its size, as a
+# kill mid-write would leave it.
+KILL_ON_CALL = """
+import importlib, json, os, signal, sys
+from pathlib import Path
+spec = json.loads(sys.argv[1])
+owner = importlib.import_module(spec["owner"])
+original, calls = getattr(owner, spec["name"]), []
+
+def kill_on_call(*args, **kwargs):
+    calls.append(None)
+    if len(calls) == spec["call"]:
+        if spec["truncate"]:
+            Path(args[0]).write_bytes(Path(args[0]).read_bytes()[: Path(args[0]).stat().st_size // 2])
+        os.kill(os.getpid(), signal.SIGKILL)
+    return original(*args, **kwargs)
+
+setattr(owner, spec["name"], kill_on_call)
+stage = importlib.import_module(spec["stage"])
+vars(stage).update(spec["globals"])
+getattr(stage, spec["function"])(**spec["kwargs"])
+"""
+
+
+def run_killed(stage: str, function: str, kwargs: dict, root: Path, owner: str, name: str, call: int,
+               left: list[str], truncate: bool = False, stage_globals: dict | None = None) -> None:
+    """Run ``stage.function(**kwargs)`` in a subprocess killed on the ``call``-th call of ``owner.name``;
+    check that the kill left the files ``left`` (globs under ``root``): it happened where intended."""
+    spec = {"stage": stage, "function": function, "kwargs": {k: str(v) for k, v in kwargs.items()},
+            "owner": owner, "name": name, "call": call, "truncate": truncate, "globals": stage_globals or {}}
+    done = subprocess.run([sys.executable, "-c", KILL_ON_CALL, json.dumps(spec)], capture_output=True, text=True)
+    assert done.returncode == -signal.SIGKILL, done.stderr[-2000:]
+    for pattern in left:
+        assert list(root.glob(pattern)), f"the kill left no {pattern}"
+
+
+def temporaries(root: Path) -> list[Path]:
+    return sorted(root.rglob("*.tmp*"))
+
+
+def assert_same_files(got: Path, expected: Path) -> None:
+    """The same files (hidden ones too) under both folders, byte for byte."""
+    names = sorted(p.relative_to(expected) for p in expected.rglob("*") if p.is_file())
+    assert sorted(p.relative_to(got) for p in got.rglob("*") if p.is_file()) == names
+    for name in names:
+        assert (got / name).read_bytes() == (expected / name).read_bytes(), name
+
+
+def hdr_paths(root: Path) -> dict:
+    return {"frames_dir": root / "hdr/frames", "manifest_out": root / "hdr/manifest.json",
+            "metrics_out": root / "hdr/metrics.json"}
+
+
+def pndf_paths(root: Path) -> dict:
+    return {"ndf_out": root / "partial_ndf/ndf.npy", "confidence_out": root / "partial_ndf/confidence.npy",
+            "metrics_out": root / "partial_ndf/metrics.json"}
+
+
+@pytest.fixture(scope="module")
+def work(tmp_path_factory, repo):
+    """The capture with negative values, and an uninterrupted run of every stage up to ``partial_ndf``
+    in ``ref``: its hdr and partial_ndf outputs are the references, its resample outputs the inputs of
+    the partial_ndf runs."""
+    from facetsynth.stages import hdr, partial_ndf, rectify, resample, separate
+    from facetsynth.virtual_rig import VirtualRig, capture
+    root = tmp_path_factory.mktemp("crash")
+    capture(repo / "resources/scenes/demo.yaml", VirtualRig.load(repo / "tests/data/rig-tiny.yaml"),
+            root / "capture", seed=2, noise=True)
+    for q, e, pixels, channels in NEGATIVES:
+        file = root / f"capture/frames/{q:04d}_e{e}.exr"
+        image, header = read_exr(file)
+        rgb = image["RGB"]
+        rgb[0, :pixels, :channels] = -0.003          # read noise below a black level
+        write_exr(file, {"RGB": rgb}, {"exposure_time": header["exposure_time"]}, precision="float16")
+    ref = root / "ref"
+    hdr.run(root / "capture", **hdr_paths(ref))
+    rectify.run(ref / "hdr/manifest.json", ref / "rectify/frames", ref / "rectify/geometry.json",
+                ref / "rectify/metrics.json", resolution=16)
+    inputs = {"geometry": ref / "rectify/geometry.json", "slice_path": ref / "resample/slice.npy",
+              "coverage_path": ref / "resample/coverage.npy", "grid_path": ref / "resample/grid.json"}
+    separate.run(geometry=inputs["geometry"], kd_out=ref / "separate/kd.exr",
+                 specular_out=ref / "separate/specular.npy",
+                 valid_out=ref / "separate/valid.npy", metrics_out=ref / "separate/metrics.json")
+    resample.run(geometry=inputs["geometry"], specular=ref / "separate/specular.npy", valid=ref / "separate/valid.npy",
+                 slice_out=inputs["slice_path"], coverage_out=inputs["coverage_path"],
+                 colour_out=ref / "resample/colour.npy", grid_out=inputs["grid_path"],
+                 metrics_out=ref / "resample/metrics.json", n_theta_range=(8, 8))
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(partial_ndf, "TILE_POINTS", TILE_POINTS)
+        partial_ndf.run(**inputs, **pndf_paths(ref))
+    return {"root": root, "ref": ref, "pndf_inputs": inputs}
+
+
+def test_hdr_counts_negative_exposure_values_and_warns(work, tmp_path, caplog):
+    """Negative values (read noise around a black level) are still clipped, but no longer silently: the
+    count goes to the metrics and a WARNING names it and the first file."""
+    from facetsynth.stages import hdr
+    with caplog.at_level(logging.WARNING, logger="facetsynth.stages.hdr"):
+        hdr.run(work["root"] / "capture", **hdr_paths(tmp_path))
+    metrics = json.loads((tmp_path / "hdr/metrics.json").read_text())
+    assert metrics["negative_values"] == NEGATIVE_COUNT
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 1
+    assert f"{NEGATIVE_COUNT} exposure values are negative" in warnings[0] and "0001_e2.exr" in warnings[0]
+    for q in (1, 4):
+        assert read_exr(tmp_path / f"hdr/frames/{q:04d}.exr")[0]["RGB"].min() >= 0     # clipped
+
+
+def test_hdr_without_negative_values_reports_zero_and_does_not_warn(tmp_path, repo, caplog):
+    from facetsynth.stages import hdr
+    from facetsynth.virtual_rig import VirtualRig, capture
+    capture(repo / "resources/scenes/demo.yaml", VirtualRig.load(repo / "tests/data/rig-tiny.yaml"),
+            tmp_path / "capture", seed=2, noise=True)
+    with caplog.at_level(logging.WARNING, logger="facetsynth.stages.hdr"):
+        hdr.run(tmp_path / "capture", **hdr_paths(tmp_path))
+    assert json.loads((tmp_path / "hdr/metrics.json").read_text())["negative_values"] == 0
+    assert not [r for r in caplog.records if r.levelno == logging.WARNING]
+
+
+# hdr, with threads=1, calls os.replace once per frame (0000 .. 0029), then to publish the frames folder,
+# then for the manifest and the metrics.
+HDR_KILLS = {
+    # frame 0004's temporary in the staging folder, half written; frames 0000-0003 done (the resumed run
+    # reads them back, frame 0001's negative values too).
+    "mid-write of frame 0004": dict(owner="os", name="replace", call=5, truncate=True,
+                                    left=["hdr/.frames.partial/.0004.exr.*.tmp.exr", "hdr/.frames.partial/0003.exr"]),
+    # between frames: 0000-0007 done, nothing being written.
+    "between frames 0007 and 0008": dict(owner="facetsynth.stages.hdr", name="write_exr", call=9,
+                                         left=["hdr/.frames.partial/0007.exr"]),
+    # the frames folder published, the manifest's temporary half written beside it.
+    "mid-write of the manifest": dict(owner="os", name="replace", call=32, truncate=True,
+                                      left=["hdr/frames/0029.exr", "hdr/.manifest.json.*.tmp"]),
+}
+
+
+@pytest.mark.parametrize("kill", HDR_KILLS, ids=list(HDR_KILLS))
+def test_hdr_rerun_after_sigkill_is_bitwise_an_uninterrupted_run(work, tmp_path, kill):
+    from facetsynth.stages import hdr
+    root = work["root"] / tmp_path.name       # beside ref: the manifest's relative paths to the capture match
+    kwargs = {"capture_dir": work["root"] / "capture", **hdr_paths(root)}
+    run_killed("facetsynth.stages.hdr", "run", kwargs, root, **HDR_KILLS[kill])
+    hdr.run(**kwargs)
+    assert temporaries(root) == []
+    assert_same_files(root / "hdr", work["ref"] / "hdr")
+
+
+# partial_ndf writes its two tensors through memory maps, tile by tile, then renames them into place
+# (the confidence first), then writes the metrics.
+PNDF_KILLS = {
+    # in the third tile: both tensors' temporaries (their headers and two tiles) written, neither renamed.
+    "mid-write of both tensors": dict(owner="facetsynth.partial_ndf", name="fit", call=3,
+                                      left=["partial_ndf/.ndf.npy.*.tmp.npy", "partial_ndf/.confidence.npy.*.tmp.npy"]),
+    # between files: the confidence renamed into place, the NDF's finished temporary not.
+    "between the confidence and the NDF": dict(owner="os", name="replace", call=2,
+                                               left=["partial_ndf/confidence.npy", "partial_ndf/.ndf.npy.*.tmp.npy"]),
+}
+
+
+@pytest.mark.parametrize("kill", PNDF_KILLS, ids=list(PNDF_KILLS))
+def test_partial_ndf_rerun_after_sigkill_is_bitwise_an_uninterrupted_run(work, tmp_path, kill, monkeypatch):
+    from facetsynth.stages import partial_ndf
+    kwargs = {**work["pndf_inputs"], **pndf_paths(tmp_path)}
+    run_killed("facetsynth.stages.partial_ndf", "run", kwargs, tmp_path, **PNDF_KILLS[kill],
+               stage_globals={"TILE_POINTS": TILE_POINTS})
+    monkeypatch.setattr(partial_ndf, "TILE_POINTS", TILE_POINTS)
+    partial_ndf.run(**kwargs)
+    assert temporaries(tmp_path) == []
+    assert_same_files(tmp_path / "partial_ndf", work["ref"] / "partial_ndf")
