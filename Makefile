@@ -7,6 +7,9 @@
 #   make bench - run every preset (fast, balanced, accurate) on demo, wallpaper and satin and write
 #                results/bench/tradeoff.csv and tradeoff.png (about 17 min on 2 cores); restrict with
 #                make bench BENCH_PRESETS=fast BENCH_SCENES=demo, or BENCH_ARGS=--dry-run
+#   make bench-scale - time, memory and disk per stage against the points (64^2 ... 800^2 at 480 frames) and
+#                the frames (120 ... 2600 at 128^2): results/bench/scale.csv and scale.png; restrict with
+#                make bench-scale SCALE_ARGS="--points 64 128 256 --frames 120 480"
 
 PYTHON ?= $(shell command -v python3.11 || command -v python3)
 VENV := .venv
@@ -15,8 +18,9 @@ CORES ?= 2
 BENCH_PRESETS ?= fast balanced accurate
 BENCH_SCENES ?= demo wallpaper satin
 BENCH_ARGS ?=
+SCALE_ARGS ?=
 
-.PHONY: run test test-scenes test-cluster bench clean
+.PHONY: run test test-scenes test-cluster bench bench-scale clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -53,6 +57,9 @@ test-cluster: $(VENV)/.installed-cluster
 
 bench: $(VENV)/.installed-bench
 	$(BIN)/python workflow/scripts/bench.py --cores $(CORES) --presets $(BENCH_PRESETS) --scenes $(BENCH_SCENES) $(BENCH_ARGS)
+
+bench-scale: $(VENV)/.installed-bench
+	$(BIN)/python workflow/scripts/bench_scale.py --cores $(CORES) $(SCALE_ARGS)
 
 clean:
 	rm -rf results/* .snakemake

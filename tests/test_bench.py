@@ -17,6 +17,7 @@ print("PROBE " + json.dumps({
     "rectify": rules.rectify.params.resolution,
     "resample": [rules.resample.params.cells_per_lobe, rules.resample.params.n_theta_range],
     "synthesize": [rules.synthesize.params.max_exemplars, rules.synthesize.params.max_iterations],
+    "other": {"tiles": SCATTER_TILES, "seed": config["seed"], "noise": config["virtual"]["noise"]},
 }))
 """
 
@@ -42,7 +43,9 @@ def probed(done: subprocess.CompletedProcess) -> dict:
     assert done.returncode == 0, done.stderr[-3000:]
     lines = [line for line in done.stdout.splitlines() if line.startswith("PROBE ")]
     assert len(lines) == 1, done.stdout[-2000:]
-    return json.loads(lines[0][len("PROBE "):])
+    values = json.loads(lines[0][len("PROBE "):])
+    values.pop("other")
+    return values
 
 
 def preset_values(repo, name):
@@ -76,6 +79,18 @@ def test_a_single_knob_overrides_the_preset(repo, workdir):
                           cwd=workdir, capture_output=True, text=True)
     expected = preset_values(repo, "accurate")
     assert probed(done) == {**expected, "synthesize": [2048, expected["synthesize"][1]]}
+
+
+def test_config_values_from_the_command_line_are_typed_in_every_section(workdir):
+    """--config gives every nested leaf as a string (YAML's BaseLoader); numbers, booleans and null are read as
+    such in every section, not only the presets' (README: --config scatter='{tiles: 8}')."""
+    done = dry_run(workdir, "scatter={tiles: 3}", "seed=5", "virtual={noise: false}",
+                   "resample={n_theta_range: [24, 24]}")
+    assert done.returncode == 0, done.stderr[-3000:]
+    line = next(line for line in done.stdout.splitlines() if line.startswith("PROBE "))
+    values = json.loads(line[len("PROBE "):])
+    assert values["other"] == {"tiles": 3, "seed": 5, "noise": False}
+    assert values["resample"][1] == [24, 24]
 
 
 def test_an_unknown_preset_fails_naming_it(workdir):
@@ -139,3 +154,43 @@ def test_rows_from_a_results_tree(tmp_path):
 
 def test_machine_description():
     assert "cores" in bench.machine_description()
+
+
+def write_benchmark(path: Path, seconds: float, cpu: float, rss: float) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("s\th:m:s\tmax_rss\tmax_vms\tmax_uss\tmax_pss\tio_in\tio_out\tmean_load\tcpu_time\n"
+                    f"{seconds}\t0:00:01\t{rss}\t1\t1\t1\t0\t0\t50\t{cpu}\n")
+
+
+def test_scale_rows_join_scatter_parts_and_total_rectify_to_params(tmp_path):
+    """A stage split in scatter parts (run side by side) costs its slowest part plus the join in wall time
+    and the sum in CPU time; 'total' sums rectify through params; bytes are the stage folders' sizes."""
+    root = tmp_path / "results/scale"
+    for k, stage in enumerate(bench.FIT_STAGES):
+        write_benchmark(root / "benchmarks" / f"{stage}.tsv", 1.0 + k, 0.5 + k, 100.0 * (k + 1))
+        (root / stage).mkdir(parents=True)
+        (root / stage / "out.npy").write_bytes(b"x" * (10 * (k + 1)))
+    write_benchmark(root / "benchmarks/partial_ndf/1-of-2.tsv", 30.0, 29.0, 2000.0)
+    write_benchmark(root / "benchmarks/partial_ndf/2-of-2.tsv", 40.0, 39.0, 1500.0)
+    (root / "svbrdf").mkdir()
+    (root / "svbrdf/model.json").write_bytes(b"y" * 7)
+    rows = {r["stage"]: r for r in bench.scale_rows(root, 4096, 480)}
+    k = bench.FIT_STAGES.index("partial_ndf")
+    assert rows["partial_ndf"]["wall_s"] == 40.0 + 1.0 + k and rows["partial_ndf"]["cpu_s"] == 29 + 39 + 0.5 + k
+    assert rows["partial_ndf"]["max_rss_mb"] == 2000.0
+    assert rows["params"]["bytes_written"] == 10 * (bench.FIT_STAGES.index("params") + 1) + 7
+    fit = [bench.FIT_STAGES.index(s) for s in bench.TOTAL_STAGES]
+    assert rows["total"]["wall_s"] == sum(1.0 + k for k in fit) + 40.0
+    assert rows["total"]["points"] == 4096 and rows["total"]["frames"] == 480
+    path = bench.write_csv(rows.values(), tmp_path / "scale.csv", bench.SCALE_COLUMNS)
+    assert path.read_text().splitlines()[0] == ",".join(bench.SCALE_COLUMNS)
+
+
+def test_growth_exponents_recover_power_laws():
+    rows = [{"points": p, "frames": 480, "stage": "cluster", "wall_s": 2e-3 * p ** 1.5} for p in (64**2, 128**2, 256**2)]
+    rows += [{"points": 128**2, "frames": f, "stage": "cluster", "wall_s": 2e-3 * (128**2) ** 1.5 * (f / 480)}
+             for f in (120, 1360, 2600)]
+    rows += [{"points": 64**2, "frames": 480, "stage": "params", "wall_s": 3.0}]
+    exponents = bench.growth_exponents(rows)
+    assert exponents["cluster"][0] == pytest.approx(1.5) and exponents["cluster"][1] == pytest.approx(1.0)
+    assert exponents["params"] == (None, None)       # one size: no exponent

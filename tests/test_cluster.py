@@ -2,8 +2,8 @@
 
 A single-node cluster on localhost (:mod:`slurm_local`: Debian's slurmctld, slurmd and munge) runs two
 small samples through ``--workflow-profile profiles/slurm`` (snakemake-executor-plugin-slurm), their
-partial NDFs split into 4 jobs each (``scatter.tiles``); every output must equal an unsplit local run's bit
-for bit, the metrics up to their timings. Measured: about 110 s
+resampling and partial NDFs split into 4 jobs each (``scatter.tiles``); every output must equal an
+unsplit local run's bit for bit, the metrics up to their timings. Measured: about 110 s
 through SLURM against 16 s locally (job start latency), 452 files compared.
 """
 
@@ -83,10 +83,10 @@ def test_two_samples_through_slurm_equal_a_local_run(repo, tmp_path):
         assert not Path(f"/proc/{pid}").exists() or "zombie" in Path(f"/proc/{pid}/status").read_text()
 
     # every rule but capture (a localrule: it drives the rig) ran as a SLURM job, once per sample; partial_ndf
-    # as 4 part jobs and their join (scatter.tiles 4), against one job locally
+    # and resample as 4 part jobs each and their joins (scatter.tiles 4), against one job each locally
     submitted = re.findall(r"has been submitted with SLURM jobid \d+ \(log: \S*/slurm_logs/rule_(\w+)/", log)
     rules = ("hdr", "rectify", "separate", "resample", "partial_ndf", "cluster", "synthesize", "params")
-    assert sorted(submitted) == sorted(list(rules) * 2 + ["partial_ndf_part"] * 8), submitted
+    assert sorted(submitted) == sorted(list(rules) * 2 + ["partial_ndf_part", "resample_part"] * 8), submitted
 
     compared, differ = 0, []
     for a in sorted((local / "results").rglob("*")):

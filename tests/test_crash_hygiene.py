@@ -115,7 +115,7 @@ def work(tmp_path_factory, repo):
     resample.run(geometry=inputs["geometry"], specular=ref / "separate/specular.npy", valid=ref / "separate/valid.npy",
                  slice_out=inputs["slice_path"], coverage_out=inputs["coverage_path"],
                  colour_out=ref / "resample/colour.npy", grid_out=inputs["grid_path"],
-                 metrics_out=ref / "resample/metrics.json", n_theta_range=(8, 8))
+                 metrics_out=ref / "resample/metrics.json", settings=resample.Settings(n_theta_range=(8, 8)))
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(partial_ndf, "TILE_POINTS", TILE_POINTS)
         partial_ndf.run(**inputs, **pndf_paths(ref))

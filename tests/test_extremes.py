@@ -194,7 +194,7 @@ def run_per_point_stages(root: Path, geometry: Path, n_theta: int = 32,
     st_resample.run(geometry=geometry, specular=f["separate/specular.npy"], valid=f["separate/valid.npy"],
          slice_out=f["resample/specular_slice.npy"], coverage_out=f["resample/coverage.npy"],
          colour_out=f["resample/specular_colour.npy"], grid_out=f["resample/grid.json"],
-         metrics_out=f["resample/metrics.json"], n_theta_range=(n_theta, n_theta))
+         metrics_out=f["resample/metrics.json"], settings=st_resample.Settings(n_theta_range=(n_theta, n_theta)))
     st_pndf.run(geometry=geometry, slice_path=f["resample/specular_slice.npy"],
          coverage_path=f["resample/coverage.npy"], grid_path=f["resample/grid.json"], ndf_out=f["partial_ndf/ndf.npy"],
          confidence_out=f["partial_ndf/confidence.npy"], metrics_out=f["partial_ndf/metrics.json"],
@@ -994,6 +994,31 @@ def test_partial_ndf_scatter_parts_join_bitwise_into_the_unsplit_run(extreme_run
     assert np.array_equal(np.load(tmp_path / "joined_w.npy"), np.load(tmp_path / "w.npy"))
     assert metrics_of(tmp_path / "joined.json") == metrics_of(tmp_path / "m.json")
     assert np.load(tmp_path / "ndf.npy").shape[0] == 256 and np.load(parts[5] / "ndf.npy").shape[0] == 0
+
+
+def test_resample_scatter_parts_join_bitwise_into_the_unsplit_run(extreme_run, tmp_path, monkeypatch):
+    """resample in 3 parts of whole tiles (64 points: 2, 1 and 1 tiles of the 256 points), joined in any
+    order: the unsplit run's slices, coverage, colour, grid and metrics, bit for bit (every part decides the
+    same grid from the same strided points)."""
+    from facetsynth.stages import resample
+    monkeypatch.setattr(resample, "TILE_POINTS", 64)
+    f = extreme_run
+    inputs = dict(geometry=f["geometry"], specular=f["separate/specular.npy"], valid=f["separate/valid.npy"])
+    names = ("slice.npy", "coverage.npy", "colour.npy", "grid.json", "metrics.json")
+    resample.run(**inputs, **{k: tmp_path / "whole" / n for k, n in zip(
+        ("slice_out", "coverage_out", "colour_out", "grid_out", "metrics_out"), names)})
+    parts = [tmp_path / f"part{k}" for k in range(3)]
+    for k in (1, 2, 0):
+        resample.run_part(**inputs, part=k, parts=3, slice_out=parts[k] / "slice.npy",
+                          coverage_out=parts[k] / "coverage.npy", record_out=parts[k] / "record.npz")
+    shuffled = [parts[k] for k in (2, 0, 1)]
+    resample.gather(**inputs, slice_parts=[p / "slice.npy" for p in shuffled],
+                    coverage_parts=[p / "coverage.npy" for p in shuffled], records=[p / "record.npz" for p in shuffled],
+                    **{k: tmp_path / "joined" / n for k, n in zip(
+                        ("slice_out", "coverage_out", "colour_out", "grid_out", "metrics_out"), names)})
+    for name in names:
+        assert (tmp_path / "whole" / name).read_bytes() == (tmp_path / "joined" / name).read_bytes(), name
+    assert np.load(parts[0] / "slice.npy").shape[0] == 128
 
 
 def test_ward_baseline_scatter_parts_join_bitwise_into_the_unsplit_run(extreme_run, tmp_path, monkeypatch):

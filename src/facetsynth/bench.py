@@ -87,14 +87,144 @@ def collect_row(results: str | Path, preset: str, scene: str) -> dict:
     return {column: row.get(column) for column in COLUMNS}
 
 
-def write_csv(rows: Iterable[dict], path: str | Path) -> Path:
+def write_csv(rows: Iterable[dict], path: str | Path, columns: Sequence[str] = COLUMNS) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=COLUMNS, extrasaction="ignore")
+        writer = csv.DictWriter(f, fieldnames=columns, extrasaction="ignore")
         writer.writeheader()
         for row in rows:
-            writer.writerow({k: _cell(row.get(k)) for k in COLUMNS})
+            writer.writerow({k: _cell(row.get(k)) for k in columns})
+    return path
+
+
+# --- growth with points and frames (make bench-scale, issue 14) ------------------------------------
+
+SCALE_COLUMNS = ["points", "frames", "stage", "wall_s", "cpu_s", "max_rss_mb", "bytes_written"]
+#: What a user with HDR frames pays: rectify through params (the row with stage "total").
+TOTAL_STAGES = PRESET_STAGES
+
+
+def stage_cost(root: str | Path, stage: str) -> dict | None:
+    """Wall and CPU seconds, peak RSS (MB) of one stage of a run (``results/{sample}``), from its benchmark
+    file and those of its scatter parts (``benchmarks/{stage}/*.tsv``, run side by side): wall = the
+    slowest part + the join, CPU = the sum, RSS = the largest. None if the stage has no benchmark."""
+    root = Path(root)
+    main = root / "benchmarks" / f"{stage}.tsv"
+    if not main.is_file():
+        return None
+    joined = read_benchmark(main)
+    parts = [read_benchmark(p) for p in sorted((root / "benchmarks" / stage).glob("*.tsv"))]
+    wall = [p["s"] for p in parts if p["s"] is not None]
+    cpu = [p["cpu_time"] for p in parts + [joined] if p["cpu_time"] is not None]
+    rss = [p["max_rss"] for p in parts + [joined] if p["max_rss"] is not None]
+    return {"wall_s": (joined["s"] or 0.0) + max(wall, default=0.0), "cpu_s": sum(cpu) if cpu else None,
+            "max_rss_mb": max(rss) if rss else None}
+
+
+def folder_bytes(*paths: str | Path) -> int:
+    """Bytes of the files under ``paths`` (files or folders; missing ones count 0)."""
+    total = 0
+    for path in map(Path, paths):
+        files = [path] if path.is_file() else (p for p in path.rglob("*") if p.is_file())
+        total += sum(f.stat().st_size for f in files)
+    return total
+
+
+def scale_rows(root: str | Path, points: int, frames: int) -> list[dict]:
+    """scale.csv's rows of one run (``results/{sample}``): one per stage (FIT_STAGES), ``bytes_written``
+    the size of the stage's output folder (params: with ``svbrdf/``), and ``total`` over TOTAL_STAGES
+    (wall and CPU summed, RSS the largest, bytes summed)."""
+    root = Path(root)
+    rows = []
+    for stage in FIT_STAGES:
+        cost = stage_cost(root, stage)
+        if cost is None:
+            continue
+        outputs = [root / stage] + ([root / "svbrdf"] if stage == "params" else [])
+        rows.append({"points": points, "frames": frames, "stage": stage, **cost,
+                     "bytes_written": folder_bytes(*outputs)})
+    fit = [r for r in rows if r["stage"] in TOTAL_STAGES]
+    if len(fit) == len(TOTAL_STAGES):
+        rows.append({"points": points, "frames": frames, "stage": "total",
+                     "wall_s": sum(r["wall_s"] for r in fit), "cpu_s": sum(r["cpu_s"] or 0.0 for r in fit),
+                     "max_rss_mb": max((r["max_rss_mb"] or 0.0) for r in fit),
+                     "bytes_written": sum(r["bytes_written"] for r in fit)})
+    return rows
+
+
+def read_floor(root: str | Path, points: int, frames: int, threads: int = 2) -> dict:
+    """The floor of a run (stage ``read_frames``): reading its merged frames (``hdr/frames``, what rectify
+    reads) once with the pipeline's reader on ``threads`` threads, as rectify does; ``bytes_written`` here
+    is the bytes read. Measured after the run, so from the page cache when the frames still fit in it."""
+    import time
+
+    from .fileio import read_frame
+    from .frames import map_frames
+    files = sorted((Path(root) / "hdr" / "frames").glob("*.exr"))
+    start, cpu = time.perf_counter(), time.process_time()
+    map_frames(lambda f: read_frame(f)[0].shape, files, threads, "read_frames")
+    return {"points": points, "frames": frames, "stage": "read_frames", "wall_s": time.perf_counter() - start,
+            "cpu_s": time.process_time() - cpu, "max_rss_mb": None, "bytes_written": folder_bytes(*files)}
+
+
+def growth_exponent(sizes: Sequence[float], seconds: Sequence[float | None]) -> float | None:
+    """The exponent b of seconds ~ a size^b: the least-squares slope of log seconds on log size over the
+    pairs with positive numbers; None with fewer than two distinct sizes."""
+    pairs = [(math.log(n), math.log(t)) for n, t in zip(sizes, seconds) if n and t and n > 0 and t > 0]
+    if len({x for x, _ in pairs}) < 2:
+        return None
+    mx = sum(x for x, _ in pairs) / len(pairs)
+    my = sum(y for _, y in pairs) / len(pairs)
+    return (sum((x - mx) * (y - my) for x, y in pairs) / sum((x - mx) ** 2 for x, _ in pairs))
+
+
+def growth_exponents(rows: Sequence[dict], points_sweep_frames: int = 480,
+                     frames_sweep_points: int = 128 * 128) -> dict[str, tuple[float | None, float | None]]:
+    """Per stage, the wall-time exponent in P (the runs at ``points_sweep_frames`` frames) and in F (the
+    runs at ``frames_sweep_points`` points)."""
+    out = {}
+    for stage in dict.fromkeys(r["stage"] for r in rows):
+        mine = [r for r in rows if r["stage"] == stage]
+        by_points = [r for r in mine if r["frames"] == points_sweep_frames]
+        by_frames = [r for r in mine if r["points"] == frames_sweep_points]
+        out[stage] = (growth_exponent([r["points"] for r in by_points], [r["wall_s"] for r in by_points]),
+                      growth_exponent([r["frames"] for r in by_frames], [r["wall_s"] for r in by_frames]))
+    return out
+
+
+def plot_scale(rows: Sequence[dict], exponents: dict, path: str | Path, title: str,
+               points_sweep_frames: int = 480, frames_sweep_points: int = 128 * 128) -> Path:
+    """Wall seconds per stage against P (left) and F (right), log-log, each stage labelled with its
+    exponent. Needs matplotlib (the ``bench`` extra)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(12, 5), sharey=True)
+    for ax, key, fixed, other, label, which in (
+            (axes[0], "points", points_sweep_frames, "frames", "points P", 0),
+            (axes[1], "frames", frames_sweep_points, "points", "frames F", 1)):
+        for stage, exps in exponents.items():
+            mine = sorted((r for r in rows if r["stage"] == stage and r[other] == fixed and r["wall_s"]),
+                          key=lambda r: r[key])
+            if not mine:
+                continue
+            b = exps[which]
+            ax.plot([r[key] for r in mine], [r["wall_s"] for r in mine], "o-" if stage != "total" else "k*-",
+                    lw=2.5 if stage == "total" else 1.2, label=f"{stage} ({'-' if b is None else f'{b:.2f}'})")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel(f"{label} ({other} = {fixed})")
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=7, title="stage (exponent)", title_fontsize=7)
+    axes[0].set_ylabel("wall seconds")
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
     return path
 
 

@@ -84,6 +84,10 @@ class DirectionGrid:
         Periodic in phi; theta clamped to the grid's rings (constant extension
         to the pole and the horizon). Leading dims of f and d broadcast.
         """
+        return self.bilinear(d)(f)
+
+    def bilinear(self, d: np.ndarray) -> "Bilinear":
+        """:meth:`lookup` at directions d (..., N, 3) for any number of tables: the cells and weights once."""
         t, p = self.coordinates(d)
         t = np.clip(t, 0.0, self.n_theta - 1.0)
         t0 = np.minimum(np.floor(t).astype(np.intp), self.n_theta - 2) if self.n_theta > 1 else np.zeros(t.shape, np.intp)
@@ -93,15 +97,8 @@ class DirectionGrid:
         p0 %= self.n_phi
         p1 = (p0 + 1) % self.n_phi
         t1 = np.minimum(t0 + 1, self.n_theta - 1)
-        flat = f.reshape(f.shape[:-2] + (-1,))
-        lead = np.broadcast_shapes(flat.shape[:-1], t.shape[:-1])
-        flat = np.broadcast_to(flat, lead + flat.shape[-1:])
-
-        def at(ti, pi):
-            return np.take_along_axis(flat, np.broadcast_to(ti * self.n_phi + pi, lead + t.shape[-1:]), axis=-1)
-
-        return ((1 - ft) * ((1 - fp) * at(t0, p0) + fp * at(t0, p1))
-                + ft * ((1 - fp) * at(t1, p0) + fp * at(t1, p1)))
+        cells = np.stack([t0 * self.n_phi + p0, t0 * self.n_phi + p1, t1 * self.n_phi + p0, t1 * self.n_phi + p1])
+        return Bilinear(cells, ft, fp)
 
     def rotate(self, f: np.ndarray, phi: float) -> np.ndarray:
         """f^phi(h) = f(R(phi) h) (eq. 13) for f (..., n_theta, n_phi).
@@ -123,3 +120,24 @@ class DirectionGrid:
     @classmethod
     def from_dict(cls, d: dict) -> "DirectionGrid":
         return cls(int(d["n_theta"]), int(d["n_phi"]))
+
+
+@dataclass(frozen=True)
+class Bilinear:
+    """Bilinear interpolation on a :class:`DirectionGrid` at fixed directions (:meth:`DirectionGrid.bilinear`):
+    an iteration that looks up a changing table at the same directions computes their cells once."""
+
+    cells: np.ndarray   # (4, ..., N) flat cells (t0, p0), (t0, p1), (t1, p0), (t1, p1)
+    ft: np.ndarray      # (..., N) weight of the t1 ring
+    fp: np.ndarray      # (..., N) weight of the p1 sector
+
+    def __call__(self, f: np.ndarray) -> np.ndarray:
+        """f (..., n_theta, n_phi) at the directions (..., N); leading dims broadcast."""
+        flat = f.reshape(f.shape[:-2] + (-1,))
+        lead = np.broadcast_shapes(flat.shape[:-1], self.ft.shape[:-1])
+        flat = np.broadcast_to(flat, lead + flat.shape[-1:])
+        a00, a01, a10, a11 = (np.take_along_axis(flat, np.broadcast_to(c, lead + c.shape[-1:]), axis=-1)
+                              for c in self.cells)
+        ft, fp = self.ft, self.fp
+        return (1 - ft) * ((1 - fp) * a00 + fp * a01) + ft * ((1 - fp) * a10 + fp * a11)
+

@@ -116,8 +116,8 @@ def fit(specular_slice: np.ndarray, coverage: np.ndarray, view: np.ndarray, grid
     i = reflect(o[:, None, :], h)                                     # (P, T*F, 3)
     i_z = i[..., 2]
     usable = i_z > np.cos(np.radians(grazing_deg))
-    rho_s = grid.lookup(specular_slice, i)                            # (P, T*F)
-    cover = grid.lookup(coverage, i)
+    at_i = grid.bilinear(i)
+    rho_s, cover = at_i(specular_slice), at_i(coverage)               # (P, T*F)
     w = np.where(usable, confidence(i_z) * np.clip(cover, 0.0, 1.0), 0.0)
     numerator = 4.0 * rho_s * i_z * o[:, 2:3]
     return iterate(numerator, w, i, o, grid, constrained, tol, max_iter)
@@ -139,9 +139,10 @@ def iterate(numerator: np.ndarray, w: np.ndarray, i: np.ndarray, o: np.ndarray, 
     d = numerator.reshape(shape)                                       # S = 1: the starting point
     iterations = np.zeros(n_points, int)
     active = np.ones(n_points, bool)
+    s_at_i, s_at_o = SHADOWING_GRID.bilinear(i), SHADOWING_GRID.bilinear(o[:, None, :])
     for it in range(1, max_iter + 1):
         s_table = shadowing_table(d, grid, constrained)                # eq. 5 from the current D
-        denom = SHADOWING_GRID.lookup(s_table, i) * SHADOWING_GRID.lookup(s_table, o[:, None, :])
+        denom = s_at_i(s_table) * s_at_o(s_table)
         new = np.divide(numerator, denom, out=np.zeros_like(numerator), where=denom > 1e-6).reshape(shape)  # eq. 11
         change = np.abs(new - d).max(axis=(1, 2)) / np.maximum(np.abs(new).max(axis=(1, 2)), 1e-30)
         d = np.where(active[:, None, None], new, d)

@@ -10,12 +10,27 @@ from snakemake.exceptions import WorkflowError
 from snakemake.utils import validate
 
 
+def scalars(value):
+    """Config leaves that --config passes as strings (it parses with YAML's BaseLoader: 'scatter={tiles: 8}'
+    gives {'tiles': '8'}) read as YAML scalars: a leaf whose YAML is a number, a boolean or null becomes
+    one; any other string (a path, a name, 'auto') is left as given, and validation names a bad one."""
+    if isinstance(value, list):
+        return [scalars(v) for v in value]
+    if isinstance(value, dict):
+        return {k: scalars(v) for k, v in value.items()}
+    if isinstance(value, str):
+        try:
+            parsed = yaml.safe_load(value)
+        except yaml.YAMLError:
+            return value
+        return parsed if parsed is None or isinstance(parsed, (bool, int, float)) else value
+    return value
+
+
 def apply_preset(config):
     """Fill every knob the chosen preset sets (config key 'preset', one of the names under 'presets')
     that its section leaves out; a knob given in its section (config file, --configfile, --config)
-    overrides the preset. --config passes nested values as strings ('{resolution: 48}' -> '48'):
-    such strings are read as YAML when the preset's value is not a string. Returns the knobs set by
-    the preset as {"section.knob": value}."""
+    overrides the preset. Returns the knobs set by the preset as {"section.knob": value}."""
     presets = config.get("presets") if isinstance(config.get("presets"), dict) else {}
     name = config.get("preset", "balanced")
     if not isinstance(name, str) or name not in presets:
@@ -35,26 +50,10 @@ def apply_preset(config):
             if knob not in target:
                 target[knob] = value
                 filled[f"{section}.{knob}"] = value
-            elif not isinstance(value, str):
-                target[knob] = typed(target[knob])
     return filled
 
 
-def typed(value):
-    """A --config value parsed by YAML's BaseLoader (strings at every leaf) read as YAML again, leaf by
-    leaf; a leaf that is not valid YAML is left as given (validation names it)."""
-    if isinstance(value, list):
-        return [typed(v) for v in value]
-    if isinstance(value, dict):
-        return {k: typed(v) for k, v in value.items()}
-    if isinstance(value, str):
-        try:
-            return yaml.safe_load(value)
-        except yaml.YAMLError:
-            return value
-    return value
-
-
+config.update(scalars(config))
 PRESET_KNOBS = apply_preset(config)
 validate(config, "../schemas/config.schema.yaml")
 SCATTER_TILES = config["scatter"]["tiles"]

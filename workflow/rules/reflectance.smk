@@ -25,29 +25,81 @@ rule separate:
         "../scripts/separate.py"
 
 
-rule resample:
-    input:
-        geometry="results/{sample}/rectify/geometry.json",
-        specular="results/{sample}/separate/specular.npy",
-        valid="results/{sample}/separate/valid.npy",
-    output:
-        slice="results/{sample}/resample/specular_slice.npy",
-        coverage="results/{sample}/resample/coverage.npy",
-        colour="results/{sample}/resample/specular_colour.npy",
-        grid="results/{sample}/resample/grid.json",
-        metrics="results/{sample}/resample/metrics.json",
-    params:
-        grazing_deg=config["partial_ndf"]["grazing_deg"],
-        **config["resample"],
-    log:
-        "results/{sample}/logs/resample.log",
-    benchmark:
-        "results/{sample}/benchmarks/resample.tsv"
-    threads: 1
-    resources:
-        mem_mb=2000,
-    script:
-        "../scripts/resample.py"
+RESAMPLE_INPUTS = {
+    "geometry": "results/{sample}/rectify/geometry.json",
+    "specular": "results/{sample}/separate/specular.npy",
+    "valid": "results/{sample}/separate/valid.npy",
+}
+RESAMPLE_PARAMS = {"grazing_deg": config["partial_ndf"]["grazing_deg"], **config["resample"]}
+
+
+if SCATTER_TILES == 1:
+
+    rule resample:
+        input:
+            **RESAMPLE_INPUTS,
+        output:
+            slice="results/{sample}/resample/specular_slice.npy",
+            coverage="results/{sample}/resample/coverage.npy",
+            colour="results/{sample}/resample/specular_colour.npy",
+            grid="results/{sample}/resample/grid.json",
+            metrics="results/{sample}/resample/metrics.json",
+        params:
+            **RESAMPLE_PARAMS,
+        log:
+            "results/{sample}/logs/resample.log",
+        benchmark:
+            "results/{sample}/benchmarks/resample.tsv"
+        threads: 1
+        resources:
+            mem_mb=2000,
+        script:
+            "../scripts/resample.py"
+
+else:   # scatter.tiles > 1: one job per part of the points (whole tiles), joined bitwise as one run's
+
+    rule resample_part:
+        input:
+            **RESAMPLE_INPUTS,
+        output:
+            slice=temp("results/{sample}/resample/parts/{scatteritem}/specular_slice.npy"),
+            coverage=temp("results/{sample}/resample/parts/{scatteritem}/coverage.npy"),
+            record=temp("results/{sample}/resample/parts/{scatteritem}/record.npz"),
+        params:
+            **RESAMPLE_PARAMS,
+        log:
+            "results/{sample}/logs/resample/{scatteritem}.log",
+        benchmark:
+            "results/{sample}/benchmarks/resample/{scatteritem}.tsv"
+        threads: 1
+        resources:
+            mem_mb=2000,
+        script:
+            "../scripts/resample.py"
+
+    rule resample:
+        input:
+            **RESAMPLE_INPUTS,
+            slice=gather.tiles("results/{{sample}}/resample/parts/{scatteritem}/specular_slice.npy"),
+            coverage=gather.tiles("results/{{sample}}/resample/parts/{scatteritem}/coverage.npy"),
+            records=gather.tiles("results/{{sample}}/resample/parts/{scatteritem}/record.npz"),
+        output:
+            slice="results/{sample}/resample/specular_slice.npy",
+            coverage="results/{sample}/resample/coverage.npy",
+            colour="results/{sample}/resample/specular_colour.npy",
+            grid="results/{sample}/resample/grid.json",
+            metrics="results/{sample}/resample/metrics.json",
+        params:
+            **RESAMPLE_PARAMS,
+        log:
+            "results/{sample}/logs/resample.log",
+        benchmark:
+            "results/{sample}/benchmarks/resample.tsv"
+        threads: 1
+        resources:
+            mem_mb=1000,
+        script:
+            "../scripts/resample.py"
 
 
 PARTIAL_NDF_INPUTS = {

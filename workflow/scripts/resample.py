@@ -1,8 +1,17 @@
 from facetsynth.stages import resample
+from facetsynth.stages.common import scatter_item
 from facetsynth.stages.runner import run_stage
 
-run_stage(snakemake, resample.run, geometry=snakemake.input.geometry, specular=snakemake.input.specular,
-          valid=snakemake.input.valid, slice_out=snakemake.output.slice, coverage_out=snakemake.output.coverage,
-          colour_out=snakemake.output.colour, grid_out=snakemake.output.grid, metrics_out=snakemake.output.metrics,
-          cells_per_lobe=snakemake.params.cells_per_lobe, n_theta_range=tuple(snakemake.params.n_theta_range),
-          grazing_deg=snakemake.params.grazing_deg)
+settings = resample.Settings.from_params(snakemake.params)
+i, o = snakemake.input, snakemake.output
+if "record" in o.keys():        # one scatter part ({scatteritem} = "k-of-n")
+    part, parts = scatter_item(snakemake.wildcards.scatteritem)
+    run_stage(snakemake, resample.run_part, geometry=i.geometry, specular=i.specular, valid=i.valid, part=part,
+              parts=parts, slice_out=o.slice, coverage_out=o.coverage, record_out=o.record, settings=settings)
+elif "records" in i.keys():     # the parts joined
+    run_stage(snakemake, resample.gather, geometry=i.geometry, specular=i.specular, valid=i.valid,
+              slice_parts=list(i.slice), coverage_parts=list(i.coverage), records=list(i.records), slice_out=o.slice,
+              coverage_out=o.coverage, colour_out=o.colour, grid_out=o.grid, metrics_out=o.metrics, settings=settings)
+else:
+    run_stage(snakemake, resample.run, geometry=i.geometry, specular=i.specular, valid=i.valid, slice_out=o.slice,
+              coverage_out=o.coverage, colour_out=o.colour, grid_out=o.grid, metrics_out=o.metrics, settings=settings)

@@ -71,7 +71,7 @@ def run(geometry: str | Path, ndf: str | Path, confidence: str | Path, grid_path
     visible = np.flatnonzero(capture.visible)
     if visible.size == 0:
         raise ValueError("no visible points to cluster")
-    d, w, cgrid = cluster.coarse(d_all[visible], w_all[visible], grid)
+    d, w, cgrid = coarse_points(d_all, w_all, visible, grid)
     log.info("points compared on a %d x %d grid (partial NDFs on %d x %d)", *cgrid.shape, *grid.shape)
     domain = cluster.common_domain(w)
     log.info("features on the cells %s", "every point sees (W >= 0.6 at 97 %% of the points): %d of %d" % (
@@ -173,6 +173,13 @@ def run(geometry: str | Path, ndf: str | Path, confidence: str | Path, grid_path
                "seconds": round(time.perf_counter() - t0, 2)}
     log.info("cluster metrics: %s", metrics)
     write_json(metrics_out, metrics)
+
+
+def coarse_points(d_all, w_all, rows: np.ndarray, grid: DirectionGrid, tile: int = 4096):
+    """:func:`facetsynth.cluster.coarse` of the points ``rows`` of the memory-mapped (P, T, F) tables, a tile
+    at a time: memory holds the coarse tables (16 x smaller on the demo's grid), never the full ones."""
+    blocks = [cluster.coarse(d_all[rows[t]], w_all[rows[t]], grid) for t in tiles(rows.size, tile)]
+    return np.concatenate([b[0] for b in blocks]), np.concatenate([b[1] for b in blocks]), blocks[0][2]
 
 
 @dataclass(frozen=True)

@@ -12,7 +12,7 @@ from tqdm import tqdm
 from .. import partial_ndf as pndf
 from ..fileio import atomic_path, read_json, write_json
 from ..grid import DirectionGrid
-from .common import TILE_POINTS, RectifiedCapture, part_points, part_records, tiles
+from .common import TILE_POINTS, RectifiedCapture, join_parts, part_points, part_records, tiles
 
 log = logging.getLogger(__name__)
 
@@ -78,18 +78,7 @@ def gather(geometry: str | Path, grid_path: str | Path, ndf_parts: list[str | Pa
     grid = DirectionGrid.from_dict(read_json(grid_path))
     order, fitted = part_records(records)
     for parts, out in ((ndf_parts, ndf_out), (confidence_parts, confidence_out)):
-        with atomic_path(out, suffix=".npy") as tmp:
-            joined = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.float32,
-                                               shape=(capture.n_points,) + grid.shape)
-            start = 0
-            for k in order:
-                block = np.load(parts[k], mmap_mode="r")
-                joined[start:start + len(block)] = block
-                start += len(block)
-            if start != capture.n_points:
-                raise ValueError(f"{out}: the scatter parts hold {start} points, the capture {capture.n_points}")
-            joined.flush()
-            del joined
+        join_parts([parts[k] for k in order], out, capture.n_points)
     write_json(metrics_out, _metrics(capture, grid, fitted, settings))
 
 

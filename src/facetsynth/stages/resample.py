@@ -13,20 +13,21 @@ recorded with its reason in ``resample/metrics.json``.
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
 from ..coverage import LightFootprint
-from ..fileio import atomic_path, write_json
+from ..fileio import atomic_path, write_json, write_npy
 from ..grid import DirectionGrid
 from ..microfacet import half_vector
 from ..lightplane import LightTriangulation
 from ..pushpull import push_pull
 from ..render import light_geometry
 from ..sharpness import grid_resolution, lobe_widths
-from .common import RectifiedCapture, tiles
+from .common import TILE_POINTS, RectifiedCapture, join_parts, part_points, part_records, tiles
 
 log = logging.getLogger(__name__)
 
@@ -52,49 +53,104 @@ def measured_sharpness(capture: RectifiedCapture, spec, ok, grazing_deg: float) 
             "broad_half_width_deg": float(np.median(broad[lobed])) if lobed.any() else None}
 
 
+@dataclass(frozen=True)
+class Settings:
+    """The stage's knobs: config ``resample`` and ``partial_ndf.grazing_deg`` (workflow/schemas/config.schema.yaml)."""
+    cells_per_lobe: float = 1.3               # elevation rings per narrow lobe half-width
+    n_theta_range: tuple[int, int] = (16, 32)  # [min, max] rings
+    grazing_deg: float = 80.0                 # lights beyond it are left out of the lobe widths (as in eq. 11)
+
+    @classmethod
+    def from_params(cls, params) -> "Settings":
+        """From a rule's ``params``."""
+        return cls(params.cells_per_lobe, tuple(params.n_theta_range), params.grazing_deg)
+
+    def direction_grid(self, capture: RectifiedCapture, spec, ok) -> tuple[DirectionGrid, dict]:
+        """The grid the measured lobes ask for, and the metrics saying why (the same in every scatter part:
+        it is decided on the same evenly strided points of the whole capture)."""
+        sharpness = measured_sharpness(capture, spec, ok, self.grazing_deg)
+        narrow = sharpness["narrow_half_width_deg"]
+        n_theta, n_phi = grid_resolution(np.nan if narrow is None else narrow, self.cells_per_lobe,
+                                         tuple(self.n_theta_range))
+        reason = (f"no resolved specular lobe: the coarsest grid" if narrow is None else
+                  f"narrow lobe half-width {narrow:.2f} deg (median of {sharpness['points_with_a_lobe']} points) x "
+                  f"{self.cells_per_lobe} rings per half-width, n_theta in {list(self.n_theta_range)}")
+        return DirectionGrid(n_theta, n_phi), {**sharpness, "n_theta": n_theta, "n_phi": n_phi,
+                                               "cells_per_lobe": self.cells_per_lobe,
+                                               "n_theta_range": list(self.n_theta_range), "reason": reason,
+                                               "ring_width_deg": 90.0 / n_theta}
+
+
 def run(geometry: str | Path, specular: str | Path, valid: str | Path, slice_out: str | Path,
         coverage_out: str | Path, colour_out: str | Path, grid_out: str | Path, metrics_out: str | Path,
-        cells_per_lobe: float = 1.3, n_theta_range: tuple[int, int] = (16, 32), grazing_deg: float = 80.0) -> None:
+        settings: Settings = Settings()) -> None:
     """Writes, per point: the specular slice rho~_s(i) on the grid (P, T, F) float32
     (channel mean), its light coverage (P, T, F) float16 and the specular
     colour (P, 3) (channel ratios, mean 1), the grid definition (JSON) and the
     metrics (the measured lobe widths and the grid they chose)."""
     capture = RectifiedCapture.load(geometry)
-    spec = np.load(specular, mmap_mode="r")
-    ok = np.load(valid, mmap_mode="r")
-    sharpness = measured_sharpness(capture, spec, ok, grazing_deg)
-    narrow = sharpness["narrow_half_width_deg"]
-    n_theta, n_phi = grid_resolution(np.nan if narrow is None else narrow, cells_per_lobe, tuple(n_theta_range))
-    grid = DirectionGrid(n_theta, n_phi)
-    reason = (f"no resolved specular lobe: the coarsest grid" if narrow is None else
-              f"narrow lobe half-width {narrow:.2f} deg (median of {sharpness['points_with_a_lobe']} points) x "
-              f"{cells_per_lobe} rings per half-width, n_theta in {list(n_theta_range)}")
-    log.info("direction grid %d x %d: %s", n_theta, n_phi, reason)
+    spec, ok = np.load(specular, mmap_mode="r"), np.load(valid, mmap_mode="r")
+    grid, metrics = settings.direction_grid(capture, spec, ok)
+    log.info("direction grid %d x %d: %s", grid.n_theta, grid.n_phi, metrics["reason"])
+    colour = _resample_points(capture, grid, spec, ok, slice(0, capture.n_points), slice_out, coverage_out)
+    write_npy(colour_out, colour.astype(np.float32))
+    write_json(grid_out, grid.to_dict())
+    write_json(metrics_out, metrics)
+
+
+def run_part(geometry: str | Path, specular: str | Path, valid: str | Path, part: int, parts: int,
+             slice_out: str | Path, coverage_out: str | Path, record_out: str | Path,
+             settings: Settings = Settings()) -> None:
+    """One scatter part (``scatter.tiles`` > 1): the slices and coverage of :func:`part_points` only, and a
+    record (.npz: the points' specular colour) that :func:`gather` joins."""
+    capture = RectifiedCapture.load(geometry)
+    spec, ok = np.load(specular, mmap_mode="r"), np.load(valid, mmap_mode="r")
+    grid, _ = settings.direction_grid(capture, spec, ok)
+    points = part_points(capture.n_points, part, parts, TILE_POINTS)
+    colour = _resample_points(capture, grid, spec, ok, points, slice_out, coverage_out)
+    with atomic_path(record_out, suffix=".npz") as tmp:
+        np.savez(tmp, start=points.start, colour=colour)
+
+
+def gather(geometry: str | Path, specular: str | Path, valid: str | Path, slice_parts: list, coverage_parts: list,
+           records: list, slice_out: str | Path, coverage_out: str | Path, colour_out: str | Path,
+           grid_out: str | Path, metrics_out: str | Path, settings: Settings = Settings()) -> None:
+    """The scatter parts joined into the unsplit outputs, bit for bit."""
+    capture = RectifiedCapture.load(geometry)
+    grid, metrics = settings.direction_grid(capture, np.load(specular, mmap_mode="r"), np.load(valid, mmap_mode="r"))
+    order, fitted = part_records(records)
+    join_parts([slice_parts[k] for k in order], slice_out, capture.n_points)
+    join_parts([coverage_parts[k] for k in order], coverage_out, capture.n_points)
+    write_npy(colour_out, fitted["colour"].astype(np.float32))
+    write_json(grid_out, grid.to_dict())
+    write_json(metrics_out, metrics)
+
+
+def _resample_points(capture: RectifiedCapture, grid: DirectionGrid, spec, ok, points: slice, slice_out,
+                     coverage_out) -> np.ndarray:
+    """The slices and coverage of ``points`` (whole tiles) into (len, T, F) files; returns their colour."""
     footprint = LightFootprint.from_lights(capture.light_positions)
     log.info("lights: %d, spacing %.1f mm, plane z = %.1f mm", len(capture.light_positions),
              1e3 * footprint.spacing, 1e3 * footprint.height)
     lights = LightTriangulation.from_lights(capture.light_positions)
     directions = grid.directions.reshape(-1, 3)
-    points, n = capture.points, capture.n_points
+    n = points.stop - points.start
     colour = np.ones((n, 3))
     with atomic_path(slice_out, suffix=".npy") as tmp_slice, atomic_path(coverage_out, suffix=".npy") as tmp_cov:
         table = np.lib.format.open_memmap(tmp_slice, mode="w+", dtype=np.float32, shape=(n,) + grid.shape)
         cover = np.lib.format.open_memmap(tmp_cov, mode="w+", dtype=np.float16, shape=(n,) + grid.shape)
-        for tile in tqdm(list(tiles(n)), desc="resample", unit="tile"):
+        for local in tqdm(list(tiles(n)), desc="resample", unit="tile"):
+            tile = slice(points.start + local.start, points.start + local.stop)
             s = np.asarray(spec[tile], float)
-            value, defined = lights.interpolate(s.mean(axis=-1), ok[tile], points[tile], directions)
-            table[tile] = push_pull((value * defined).reshape((-1,) + grid.shape),
-                                    defined.reshape((-1,) + grid.shape).astype(float))
-            cover[tile] = footprint.coverage(points[tile], directions).reshape((-1,) + grid.shape)
+            xyz = capture.points[tile]
+            value, defined = lights.interpolate(s.mean(axis=-1), ok[tile], xyz, directions)
+            table[local] = push_pull((value * defined).reshape((-1,) + grid.shape),
+                                     defined.reshape((-1,) + grid.shape).astype(float))
+            cover[local] = footprint.coverage(xyz, directions).reshape((-1,) + grid.shape)
             total = np.where(ok[tile][..., None], s, 0.0).sum(axis=1)
             mean = total.mean(axis=1, keepdims=True)
-            colour[tile] = np.divide(total, mean, out=np.ones_like(total), where=mean > 0)
+            colour[local] = np.divide(total, mean, out=np.ones_like(total), where=mean > 0)
         table.flush()
         cover.flush()
         del table, cover
-    with atomic_path(colour_out, suffix=".npy") as tmp:
-        np.save(tmp, colour.astype(np.float32))
-    write_json(grid_out, grid.to_dict())
-    write_json(metrics_out, {**sharpness, "n_theta": n_theta, "n_phi": n_phi, "cells_per_lobe": cells_per_lobe,
-                             "n_theta_range": list(n_theta_range), "reason": reason,
-                             "ring_width_deg": 90.0 / n_theta})
+    return colour
