@@ -175,7 +175,7 @@ def test_hdr_rerun_after_sigkill_is_bitwise_an_uninterrupted_run(work, tmp_path,
     assert_same_files(root / "hdr", work["ref"] / "hdr")
 
 
-# partial_ndf writes its two tensors through memory maps, tile by tile, then renames them into place
+# partial_ndf writes its two tensors tile by tile (fileio.npy_writer), then renames them into place
 # (the confidence first), then writes the metrics.
 PNDF_KILLS = {
     # in the third tile: both tensors' temporaries (their headers and two tiles) written, neither renamed.

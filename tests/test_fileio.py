@@ -151,3 +151,26 @@ def test_atomic_dir_replaces_a_published_folder_whole(tmp_path):
         (staging / "new.exr").write_text("new")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["frames"]
     assert [p.name for p in out.iterdir()] == ["new.exr"]
+
+
+def test_npy_writer_writes_np_saves_bytes_and_npy_rows_reads_them(tmp_path):
+    """The per-point stages stream their (P, T, F) outputs in row blocks and read their inputs by rows
+    (issue 14: peak RSS without the memory maps' pages): the bytes are np.save's, the rows read are the
+    array's, and blocks that do not fill the shape are an error."""
+    from facetsynth.fileio import NpyRows, npy_writer
+    a = np.random.default_rng(0).random((10, 4, 6)).astype(np.float32)
+    np.save(tmp_path / "saved.npy", a)
+    with npy_writer(tmp_path / "streamed.npy", np.float32, a.shape) as write:
+        for start in range(0, 10, 3):
+            write(a[start:start + 3])
+    assert (tmp_path / "streamed.npy").read_bytes() == (tmp_path / "saved.npy").read_bytes()
+    rows = NpyRows(tmp_path / "streamed.npy")
+    assert len(rows) == 10 and rows.shape == a.shape and rows.dtype == np.float32
+    assert np.array_equal(rows[[7, 2, 2]], a[[7, 2, 2]]) and np.array_equal(rows[3], a[3])
+    with pytest.raises(ValueError, match="9 rows written of 10"):
+        with npy_writer(tmp_path / "short.npy", np.float32, a.shape) as write:
+            write(a[:9])
+    assert not (tmp_path / "short.npy").exists() and list(tmp_path.glob(".short*")) == []
+    with pytest.raises(ValueError, match="does not fit"):
+        with npy_writer(tmp_path / "wide.npy", np.float32, a.shape) as write:
+            write(np.zeros((2, 4, 7), np.float32))

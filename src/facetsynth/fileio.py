@@ -21,7 +21,7 @@ import re
 import shutil
 import threading
 from pathlib import Path
-from typing import Any, Iterable, Iterator
+from typing import Any, Callable, Iterable, Iterator
 
 import numpy as np
 import OpenEXR
@@ -275,6 +275,55 @@ def read_npy(path: PathLike, mmap_mode: str | None = None) -> np.ndarray:
         raise InputError(path, "file not found") from None
     except Exception as exc:
         raise InputError(path, f"not a readable .npy tensor ({exc})") from None
+
+
+class NpyRows:
+    """A .npy tensor read by rows (``rows[index]``, any numpy index on the first axis), each read through a
+    memory map opened and closed for it: the pages read stay in the page cache, where the kernel reclaims
+    them, instead of counting in this process's resident memory for as long as one map of the whole file
+    lives (the cluster stage's peak RSS was the partial NDF files it had read: docs/decisions.md, "At the
+    paper's scale")."""
+
+    def __init__(self, path: PathLike):
+        self.path = Path(path)
+        table = read_npy(self.path, mmap_mode="r")
+        self.shape, self.dtype = table.shape, table.dtype
+        del table
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, index) -> np.ndarray:
+        table = np.load(self.path, mmap_mode="r")
+        rows = np.array(table[index])
+        del table                      # unmapped here: its pages leave this process's resident set
+        return rows
+
+
+@contextlib.contextmanager
+def npy_writer(path: PathLike, dtype, shape: tuple[int, ...]) -> Iterator[Callable[[np.ndarray], None]]:
+    """Write a .npy tensor of ``shape`` atomically, row blocks in order: yields ``write(block)``, which
+    appends ``block`` (n, *shape[1:]). The bytes are np.save's; the pages written go to the page cache,
+    not into this process's resident memory as a writable memory map's would. Raises ValueError when the
+    blocks do not fill ``shape`` exactly."""
+    dtype = np.dtype(dtype)
+    written = 0
+    with atomic_path(path, suffix=".npy") as tmp, open(tmp, "wb") as f:
+        np.lib.format.write_array_header_1_0(f, {"descr": np.lib.format.dtype_to_descr(dtype), "fortran_order": False,
+                                                 "shape": tuple(shape)})
+
+        def write(block: np.ndarray) -> None:
+            nonlocal written
+            block = np.ascontiguousarray(block, dtype=dtype)
+            if block.shape[1:] != tuple(shape[1:]) or written + len(block) > shape[0]:
+                raise ValueError(f"{path}: a block of shape {block.shape} does not fit the tensor {tuple(shape)} "
+                                 f"after {written} rows")
+            f.write(block.tobytes())
+            written += len(block)
+
+        yield write
+        if written != shape[0]:
+            raise ValueError(f"{path}: {written} rows written of {shape[0]}")
 
 
 def write_npy(path: PathLike, array: np.ndarray) -> None:

@@ -19,7 +19,7 @@ from tqdm import tqdm
 
 from .. import cluster
 from .. import partial_ndf as pndf
-from ..fileio import read_exr, read_json, write_json, write_npy
+from ..fileio import NpyRows, read_exr, read_json, write_json, write_npy
 from ..grid import DirectionGrid
 from ..partial_ndf import relative_l2
 from .common import RectifiedCapture, tiles
@@ -65,8 +65,7 @@ def run(geometry: str | Path, ndf: str | Path, confidence: str | Path, grid_path
     t0 = time.perf_counter()
     capture = RectifiedCapture.load(geometry)
     grid = DirectionGrid.from_dict(read_json(grid_path))
-    d_all = np.load(ndf, mmap_mode="r")
-    w_all = np.load(confidence, mmap_mode="r")
+    d_all, w_all = NpyRows(ndf), NpyRows(confidence)
     n = capture.n_points
     visible = np.flatnonzero(capture.visible)
     if visible.size == 0:
@@ -115,8 +114,8 @@ def run(geometry: str | Path, ndf: str | Path, confidence: str | Path, grid_path
         rows = visible[reps]
         pooled = Pooled(np.asarray(d_all[rows], float), np.asarray(w_all[rows], float), np.ones(reps.size, int))
     else:
-        pooled = pooled_representatives(capture, visible, result, d_all, w_all, np.load(specular, mmap_mode="r"),
-                                        np.load(valid, mmap_mode="r"), grid, constrained, grazing_deg, tol, max_iter)
+        pooled = pooled_representatives(capture, visible, result, d_all, w_all, NpyRows(specular),
+                                        NpyRows(valid), grid, constrained, grazing_deg, tol, max_iter)
     rep_d, rep_w, _ = cluster.coarse(pooled.ndf, pooled.confidence, grid)
     if domain is not None:      # eq. 18 compared on the cells every point sees, as k-means (the domain is the rig's)
         w, rep_w = np.broadcast_to(domain, w.shape).astype(float), np.broadcast_to(domain, rep_w.shape).astype(float)

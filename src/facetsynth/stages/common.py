@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..fileio import atomic_path, read_json
+from ..fileio import NpyRows, npy_writer, read_json
 from ..plane import PlaneGrid
 from ..scene import MaterialMaps, Scene
 
@@ -98,18 +98,14 @@ def part_records(records: list) -> tuple[np.ndarray, dict]:
 def join_parts(parts: list, out: str | Path, n_points: int) -> None:
     """Scatter parts' (n_k, ...) .npy tensors, given in point order, streamed into one (n_points, ...) .npy
     file: the unsplit run's, bit for bit."""
-    first = np.load(parts[0], mmap_mode="r")
-    with atomic_path(out, suffix=".npy") as tmp:
-        joined = np.lib.format.open_memmap(tmp, mode="w+", dtype=first.dtype, shape=(n_points,) + first.shape[1:])
-        start = 0
-        for part in parts:
-            block = np.load(part, mmap_mode="r")
-            joined[start:start + len(block)] = block
-            start += len(block)
-        if start != n_points:
-            raise ValueError(f"{out}: the scatter parts hold {start} points, the capture {n_points}")
-        joined.flush()
-        del joined
+    blocks = [NpyRows(part) for part in parts]
+    held = sum(len(block) for block in blocks)
+    if held != n_points:
+        raise ValueError(f"{out}: the scatter parts hold {held} points, the capture {n_points}")
+    with npy_writer(out, blocks[0].dtype, (n_points,) + blocks[0].shape[1:]) as write:
+        for block in blocks:
+            for tile in tiles(len(block)):
+                write(block[tile])
 
 
 def flag_degenerate(metrics: dict, reason: str, log: logging.Logger) -> None:

@@ -10,7 +10,7 @@ import numpy as np
 from tqdm import tqdm
 
 from .. import partial_ndf as pndf
-from ..fileio import atomic_path, read_json, write_json
+from ..fileio import NpyRows, atomic_path, npy_writer, read_json, write_json
 from ..grid import DirectionGrid
 from .common import TILE_POINTS, RectifiedCapture, join_parts, part_points, part_records, tiles
 
@@ -86,31 +86,27 @@ def _fit_points(capture: RectifiedCapture, grid: DirectionGrid, slice_path, cove
                 ndf_out, confidence_out, settings: Settings) -> dict:
     """Fit the partial NDFs of ``points`` (a slice of the capture's points, whole tiles) into (len, T, F)
     float32 files; returns the points' iterations, convergence and the scored points' errors."""
-    table = np.load(slice_path, mmap_mode="r")
-    cover = np.load(coverage_path, mmap_mode="r")
+    table, cover = NpyRows(slice_path), NpyRows(coverage_path)
     truth = capture.truth()
     scored = scored_points(capture, truth)
     n = points.stop - points.start
     errors = []
     iterations, converged = np.zeros(n, int), np.zeros(n, bool)
     views = capture.view_directions(settings.per_point_view)
-    with atomic_path(ndf_out, suffix=".npy") as tmp_ndf, atomic_path(confidence_out, suffix=".npy") as tmp_w:
-        ndf = np.lib.format.open_memmap(tmp_ndf, mode="w+", dtype=np.float32, shape=(n,) + grid.shape)
-        weight = np.lib.format.open_memmap(tmp_w, mode="w+", dtype=np.float32, shape=(n,) + grid.shape)
+    shape = (n,) + grid.shape
+    with npy_writer(ndf_out, np.float32, shape) as write_ndf, npy_writer(confidence_out, np.float32, shape) as write_w:
         for local in tqdm(list(tiles(n, TILE_POINTS)), desc="partial_ndf", unit="tile"):
             tile = slice(points.start + local.start, points.start + local.stop)
             s, c = np.asarray(table[tile], float), np.asarray(cover[tile], float)
             view = views[tile]
             fit = settings.fit(s, c, view, grid)
-            ndf[local], weight[local] = fit.ndf, fit.confidence
+            write_ndf(fit.ndf)
+            write_w(fit.confidence)
             iterations[local], converged[local] = fit.iterations, fit.converged
             pick = scored[tile]
             if pick.any():
                 errors.append(_errors(fit.ndf[pick], fit.confidence[pick], view[pick],
                                       truth.take(np.flatnonzero(pick) + tile.start), grid))
-        ndf.flush()
-        weight.flush()
-        del ndf, weight
     return {"iterations": iterations, "converged": converged,
             "errors": np.concatenate(errors) if errors else np.zeros(0)}
 

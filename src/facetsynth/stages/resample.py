@@ -20,7 +20,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ..coverage import LightFootprint
-from ..fileio import atomic_path, write_json, write_npy
+from ..fileio import NpyRows, atomic_path, npy_writer, write_json, write_npy
 from ..grid import DirectionGrid
 from ..microfacet import half_vector
 from ..lightplane import LightTriangulation
@@ -89,7 +89,7 @@ def run(geometry: str | Path, specular: str | Path, valid: str | Path, slice_out
     colour (P, 3) (channel ratios, mean 1), the grid definition (JSON) and the
     metrics (the measured lobe widths and the grid they chose)."""
     capture = RectifiedCapture.load(geometry)
-    spec, ok = np.load(specular, mmap_mode="r"), np.load(valid, mmap_mode="r")
+    spec, ok = NpyRows(specular), NpyRows(valid)
     grid, metrics = settings.direction_grid(capture, spec, ok)
     log.info("direction grid %d x %d: %s", grid.n_theta, grid.n_phi, metrics["reason"])
     colour = _resample_points(capture, grid, spec, ok, slice(0, capture.n_points), slice_out, coverage_out)
@@ -104,7 +104,7 @@ def run_part(geometry: str | Path, specular: str | Path, valid: str | Path, part
     """One scatter part (``scatter.tiles`` > 1): the slices and coverage of :func:`part_points` only, and a
     record (.npz: the points' specular colour) that :func:`gather` joins."""
     capture = RectifiedCapture.load(geometry)
-    spec, ok = np.load(specular, mmap_mode="r"), np.load(valid, mmap_mode="r")
+    spec, ok = NpyRows(specular), NpyRows(valid)
     grid, _ = settings.direction_grid(capture, spec, ok)
     points = part_points(capture.n_points, part, parts, TILE_POINTS)
     colour = _resample_points(capture, grid, spec, ok, points, slice_out, coverage_out)
@@ -117,7 +117,7 @@ def gather(geometry: str | Path, specular: str | Path, valid: str | Path, slice_
            grid_out: str | Path, metrics_out: str | Path, settings: Settings = Settings()) -> None:
     """The scatter parts joined into the unsplit outputs, bit for bit."""
     capture = RectifiedCapture.load(geometry)
-    grid, metrics = settings.direction_grid(capture, np.load(specular, mmap_mode="r"), np.load(valid, mmap_mode="r"))
+    grid, metrics = settings.direction_grid(capture, NpyRows(specular), NpyRows(valid))
     order, fitted = part_records(records)
     join_parts([slice_parts[k] for k in order], slice_out, capture.n_points)
     join_parts([coverage_parts[k] for k in order], coverage_out, capture.n_points)
@@ -136,21 +136,17 @@ def _resample_points(capture: RectifiedCapture, grid: DirectionGrid, spec, ok, p
     directions = grid.directions.reshape(-1, 3)
     n = points.stop - points.start
     colour = np.ones((n, 3))
-    with atomic_path(slice_out, suffix=".npy") as tmp_slice, atomic_path(coverage_out, suffix=".npy") as tmp_cov:
-        table = np.lib.format.open_memmap(tmp_slice, mode="w+", dtype=np.float32, shape=(n,) + grid.shape)
-        cover = np.lib.format.open_memmap(tmp_cov, mode="w+", dtype=np.float16, shape=(n,) + grid.shape)
+    shape = (n,) + grid.shape
+    with npy_writer(slice_out, np.float32, shape) as write_slice, npy_writer(coverage_out, np.float16, shape) as write_cover:
         for local in tqdm(list(tiles(n)), desc="resample", unit="tile"):
             tile = slice(points.start + local.start, points.start + local.stop)
             s = np.asarray(spec[tile], float)
             xyz = capture.points[tile]
             value, defined = lights.interpolate(s.mean(axis=-1), ok[tile], xyz, directions)
-            table[local] = push_pull((value * defined).reshape((-1,) + grid.shape),
-                                     defined.reshape((-1,) + grid.shape).astype(float))
-            cover[local] = footprint.coverage(xyz, directions).reshape((-1,) + grid.shape)
+            write_slice(push_pull((value * defined).reshape((-1,) + grid.shape),
+                                  defined.reshape((-1,) + grid.shape).astype(float)))
+            write_cover(footprint.coverage(xyz, directions).reshape((-1,) + grid.shape))
             total = np.where(ok[tile][..., None], s, 0.0).sum(axis=1)
             mean = total.mean(axis=1, keepdims=True)
             colour[local] = np.divide(total, mean, out=np.ones_like(total), where=mean > 0)
-        table.flush()
-        cover.flush()
-        del table, cover
     return colour

@@ -22,7 +22,7 @@ import numpy as np
 from .. import synthesis as syn
 from ..cluster import material_groups
 from ..errors import InputError
-from ..fileio import read_exr, read_json, write_json, write_npy
+from ..fileio import NpyRows, read_exr, read_json, write_json, write_npy
 from ..grid import DirectionGrid
 from .common import RectifiedCapture, flag_degenerate, tiles
 
@@ -70,8 +70,7 @@ def run(geometry: str | Path, ndf: str | Path, confidence: str | Path, grid_path
     capture = RectifiedCapture.load(geometry)
     grid_dict = read_json(grid_path)
     grid = DirectionGrid.from_dict(grid_dict)
-    d_all = np.load(ndf, mmap_mode="r")
-    w_all = np.load(confidence, mmap_mode="r")
+    d_all, w_all = NpyRows(ndf), NpyRows(confidence)
     reps = np.load(representatives)
     t0 = time.perf_counter()
     view = capture.view_directions(True)
