@@ -90,3 +90,18 @@ def test_predict_validates_its_manifest_and_fails_clearly(captured, tmp_path, ca
     assert "distortion" in capsys.readouterr().err
     assert cli.main(["predict", str(tmp_path / "no-model"), str(captured / "capture"), str(tmp_path / "o")]) == 1
     assert "model.json" in capsys.readouterr().err
+
+
+def test_predict_again_into_its_own_folder_keeps_only_the_frames_its_manifest_lists(captured, tmp_path):
+    """A second prediction of fewer frames into predict's own folder leaves no frame of the first behind (its
+    manifest lists only the new ones); a foreign folder written with --force keeps the user's files."""
+    out = tmp_path / "pred"
+    predict(captured / "svbrdf", captured / "capture", out, frames=[0, 1, 2], progress=False)
+    predict(captured / "svbrdf", captured / "capture", out, frames=[1], progress=False)
+    assert sorted(p.name for p in (out / "frames").glob("*.exr")) == ["0001.exr"]
+    assert [f["source_frame"] for f in manifest.load(out)["frames"]] == [1]
+    foreign = tmp_path / "mine"
+    (foreign / "frames").mkdir(parents=True)
+    (foreign / "frames" / "0007.exr").write_bytes(b"the user's")
+    predict(captured / "svbrdf", captured / "capture", foreign, frames=[1], progress=False, force=True)
+    assert (foreign / "frames" / "0007.exr").read_bytes() == b"the user's"

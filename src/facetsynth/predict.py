@@ -24,7 +24,7 @@ from tqdm import tqdm
 from . import manifest as manifest_io
 from .errors import InputError
 from .fileio import write_exr
-from .outputs import prepare_output_dir
+from .outputs import made_by, prepare_output_dir
 from .render import light_geometry, unit
 from .svbrdf import CHUNK, SVBRDF
 
@@ -161,4 +161,8 @@ def predict(model_dir: str | Path, manifest_path: str | Path, out_dir: str | Pat
            "prediction": {"model": str(Path(model_dir).resolve()), "manifest": str(manifest_path.resolve()),
                           "supersample": int(supersample)}}
     manifest_io.save(out_dir / "manifest.json", out)
+    if made_by(out_dir, "predict"):   # its own folder: frames of an earlier prediction the manifest no longer lists
+        written = {out_dir / f["exposures"][0]["file"] for f in out_frames}
+        for stale in sorted(set((out_dir / "frames").glob("*.exr")) - written):
+            stale.unlink()
     return out
