@@ -140,13 +140,13 @@ def _resample_points(capture: RectifiedCapture, grid: DirectionGrid, spec, ok, p
     with npy_writer(slice_out, np.float32, shape) as write_slice, npy_writer(coverage_out, np.float16, shape) as write_cover:
         for local in tqdm(list(tiles(n)), desc="resample", unit="tile"):
             tile = slice(points.start + local.start, points.start + local.stop)
-            s = np.asarray(spec[tile], float)
+            s, valid = np.asarray(spec[tile], float), ok[tile]
             xyz = capture.points[tile]
-            value, defined = lights.interpolate(s.mean(axis=-1), ok[tile], xyz, directions)
+            value, defined = lights.interpolate(s.mean(axis=-1), valid, xyz, directions)
             write_slice(push_pull((value * defined).reshape((-1,) + grid.shape),
                                   defined.reshape((-1,) + grid.shape).astype(float)))
             write_cover(footprint.coverage(xyz, directions).reshape((-1,) + grid.shape))
-            total = np.where(ok[tile][..., None], s, 0.0).sum(axis=1)
+            total = np.where(valid[..., None], s, 0.0).sum(axis=1)
             mean = total.mean(axis=1, keepdims=True)
             colour[local] = np.divide(total, mean, out=np.ones_like(total), where=mean > 0)
     return colour
