@@ -44,8 +44,11 @@ def coarse(d: np.ndarray, w: np.ndarray, grid: DirectionGrid,
     n = len(d)
     om = grid.solid_angles
     area = om.reshape(rings, bt, 4 * rings, bp).sum(axis=(1, 3))
-    dc = (np.asarray(d, float) * om).reshape(n, rings, bt, 4 * rings, bp).sum(axis=(2, 4)) / area
-    wc = np.asarray(w, float).reshape(n, rings, bt, 4 * rings, bp).mean(axis=(2, 4))
+    # sectors first (om is constant along a ring), then rings; accumulated in float64 without a float64 copy
+    dc = np.asarray(d).reshape(n, grid.n_theta, 4 * rings, bp).sum(axis=-1, dtype=float) * om[:, :1]
+    dc = dc.reshape(n, rings, bt, 4 * rings).sum(axis=2) / area
+    wc = np.asarray(w).reshape(n, grid.n_theta, 4 * rings, bp).sum(axis=-1, dtype=float)
+    wc = wc.reshape(n, rings, bt, 4 * rings).sum(axis=2) / (bt * bp)
     return dc, wc, DirectionGrid(rings, 4 * rings)
 
 
@@ -253,22 +256,25 @@ def choose_k(feats: np.ndarray, k_min: int, k_max: int, tolerance: float, subsam
 def constrained_least_squares(a: np.ndarray, b: np.ndarray, ridge: float = 0.0) -> np.ndarray:
     """w minimising |A w - b|^2 + ridge tr(A^T A)/k |w|^2 subject to sum(w) = 1 (eq. 18 augmented).
 
-    ``a`` (C, k), ``b`` (C,). Solved through the KKT system by least squares,
-    so a singular system (identical representatives) still gives a finite
-    solution (the minimum-norm one).
+    ``a`` (..., C, k), ``b`` (..., C): any number of systems at once. Solved
+    through the KKT system by its pseudo-inverse (the least-squares solution
+    of numpy's ``lstsq``, with its cut-off), so a singular system (identical
+    representatives) still gives a finite solution (the minimum-norm one).
     """
-    k = a.shape[1]
-    ata = a.T @ a
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    k = a.shape[-1]
+    ata = np.swapaxes(a, -1, -2) @ a
     if ridge > 0:
-        ata = ata + ridge * max(np.trace(ata) / k, TINY) * np.eye(k)
-    kkt = np.zeros((k + 1, k + 1))
-    kkt[:k, :k] = 2.0 * ata
-    kkt[:k, k] = kkt[k, :k] = 1.0
-    rhs = np.concatenate([2.0 * a.T @ b, [1.0]])
-    sol = np.linalg.lstsq(kkt, rhs, rcond=None)[0][:k]
-    if not np.all(np.isfinite(sol)):
-        sol = np.full(k, 1.0 / k)
-    return sol / sol.sum() if abs(sol.sum()) > TINY else np.full(k, 1.0 / k)
+        scale = np.maximum(np.trace(ata, axis1=-2, axis2=-1) / k, TINY)
+        ata = ata + ridge * scale[..., None, None] * np.eye(k)
+    kkt = np.zeros(a.shape[:-2] + (k + 1, k + 1))
+    kkt[..., :k, :k] = 2.0 * ata
+    kkt[..., :k, k] = kkt[..., k, :k] = 1.0
+    rhs = np.concatenate([2.0 * np.einsum("...ck,...c->...k", a, b), np.ones(a.shape[:-2] + (1,))], axis=-1)
+    sol = (np.linalg.pinv(kkt, rcond=np.finfo(float).eps * (k + 1)) @ rhs[..., None])[..., :k, 0]
+    total = sol.sum(axis=-1, keepdims=True)
+    good = np.all(np.isfinite(sol), axis=-1, keepdims=True) & (np.abs(total) > TINY)
+    return np.where(good, sol / np.where(good, total, 1.0), 1.0 / k)
 
 
 def interpolation_weights(d: np.ndarray, w: np.ndarray, rep_d: np.ndarray, rep_w: np.ndarray, grid: DirectionGrid,
@@ -299,31 +305,30 @@ def interpolation_weights(d: np.ndarray, w: np.ndarray, rep_d: np.ndarray, rep_w
     weights = np.zeros((n, k), np.float32)
     om = grid.solid_angles.reshape(-1)
     rep_flat = np.asarray(rep_d, float).reshape(n_rep, -1)
-    where_rep = {} if rep_rows is None or rows is None else {int(r): j for j, r in enumerate(rep_rows)}
     for start in range(0, n, 256):
-        sl = slice(start, min(start + 256, n))
-        dd, ww = np.asarray(d[sl], float), np.asarray(w[sl], float)
+        block = np.arange(start, min(start + 256, n))
+        dd, ww = np.asarray(d[block], float), np.asarray(w[block], float)
         dist = pairwise_distance(dd, ww, rep_d, rep_w, grid)
         dist = np.where(np.isfinite(dist), dist, np.inf)
         order = np.argsort(dist, axis=1, kind="stable")[:, :k]
-        for i in range(len(dd)):
-            row = start + i
-            if rows is not None and int(rows[row]) in where_rep:
-                j = where_rep[int(rows[row])]
-                neighbours[row] = j
-                weights[row, 0] = 1.0
+        # the neighbours within the radius are a prefix of the sorted ones; the nearest is always kept
+        count = np.maximum(1, np.sum(np.take_along_axis(dist, order, axis=1) <= limit, axis=1))
+        neighbours[block] = order[:, :1]                   # padding: the nearest, with weight 0
+        neighbours[block, :order.shape[1]] = np.where(np.arange(order.shape[1]) < count[:, None], order, order[:, :1])
+        cw = np.sqrt(np.clip(ww, 0.0, None).reshape(len(block), -1) * om)
+        for size in np.unique(count):
+            g = np.flatnonzero(count == size)
+            if size == 1:
+                weights[block[g], 0] = 1.0
                 continue
-            near = order[i]
-            keep = near[(dist[i, near] <= limit)]
-            if keep.size == 0:
-                keep = near[:1]
-            cw = np.sqrt(np.clip(ww[i], 0.0, None).reshape(-1) * om)
-            a = rep_flat[keep].T * cw[:, None]
-            b = dd[i].reshape(-1) * cw
-            sol = constrained_least_squares(a, b, ridge) if keep.size > 1 else np.ones(1)
-            neighbours[row] = keep[0]
-            neighbours[row, :keep.size] = keep
-            weights[row, :keep.size] = sol
+            a = rep_flat[order[g, :size]].transpose(0, 2, 1) * cw[g, :, None]          # (G, cells, size)
+            weights[block[g], :size] = constrained_least_squares(a, dd[g].reshape(len(g), -1) * cw[g], ridge)
+    if rep_rows is not None and rows is not None:          # a representative is its own neighbour
+        where = {int(r): j for j, r in enumerate(rep_rows)}
+        for row, r in enumerate(np.asarray(rows)):
+            if int(r) in where:
+                neighbours[row], weights[row] = where[int(r)], 0.0
+                weights[row, 0] = 1.0
     return neighbours, weights, lam
 
 

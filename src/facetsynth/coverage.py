@@ -13,8 +13,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
-from scipy.ndimage import distance_transform_edt, map_coordinates
+from scipy.ndimage import distance_transform_edt
 from scipy.spatial import cKDTree
 
 
@@ -40,11 +41,31 @@ class LightFootprint:
         return cls(distance_transform_edt(lit) * pitch, origin, pitch, float(np.median(positions[:, 2])), spacing)
 
     def coverage(self, points: np.ndarray, directions: np.ndarray) -> np.ndarray:
-        """Coverage in [0, 1] of directions (..., N, 3) seen from points (..., 3): (..., N)."""
-        up = directions[..., 2] > 1e-3
-        t = np.where(up, (self.height - points[..., None, 2]) / np.where(up, directions[..., 2], 1.0), 0.0)
-        hit = points[..., None, :2] + t[..., None] * directions[..., :2]
-        col, row = ((hit - self.origin) / self.pitch).transpose(-1, *range(hit.ndim - 1))
-        dist = map_coordinates(self.distance, [row.ravel(), col.ravel()], order=1, mode="constant",
-                               cval=np.inf).reshape(row.shape)
-        return np.where(up, np.clip((1.25 * self.spacing - dist) / (0.5 * self.spacing), 0.0, 1.0), 0.0)
+        """Coverage in [0, 1] of directions (N, 3) seen from points (P, 3): (P, N)."""
+        return _coverage(self.distance, self.origin, self.pitch, self.height, self.spacing,
+                         np.asarray(points, float), np.asarray(directions, float))
+
+
+@numba.njit(cache=True)
+def _coverage(distance: np.ndarray, origin: np.ndarray, pitch: float, height: float, spacing: float,
+              points: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """Per point and direction: where the ray meets the lights' plane, the distance map there (linear
+    interpolation; beyond the raster: infinitely far), as coverage 1 within 0.75 spacings, 0 beyond 1.25."""
+    rows, cols = distance.shape
+    out = np.zeros((points.shape[0], directions.shape[0]))
+    for a in range(points.shape[0]):
+        for n in range(directions.shape[0]):
+            dz = directions[n, 2]
+            if dz <= 1e-3:                                   # never reaches the plane
+                continue
+            t = (height - points[a, 2]) / dz
+            col = (points[a, 0] + t * directions[n, 0] - origin[0]) / pitch
+            row = (points[a, 1] + t * directions[n, 1] - origin[1]) / pitch
+            if not (0.0 <= row <= rows - 1 and 0.0 <= col <= cols - 1):
+                continue
+            r0, c0 = min(int(row), rows - 2), min(int(col), cols - 2)
+            fr, fc = row - r0, col - c0
+            dist = ((1 - fr) * ((1 - fc) * distance[r0, c0] + fc * distance[r0, c0 + 1])
+                    + fr * ((1 - fc) * distance[r0 + 1, c0] + fc * distance[r0 + 1, c0 + 1]))
+            out[a, n] = min(max((1.25 * spacing - dist) / (0.5 * spacing), 0.0), 1.0)
+    return out

@@ -16,7 +16,8 @@ T = TypeVar("T")
 R = TypeVar("R")
 
 
-def map_frames(work: Callable[[T], R], items: Iterable[T], threads: int, desc: str, total: int | None = None) -> list[R]:
+def map_frames(work: Callable[[T], R], items: Iterable[T], threads: int, desc: str, total: int | None = None,
+               unit: str = "frame") -> list[R]:
     """``[work(item) for item in items]`` on ``threads`` threads, with one progress bar.
 
     ``items`` may be a generator (the capture loop driving the rig): it is
@@ -26,6 +27,6 @@ def map_frames(work: Callable[[T], R], items: Iterable[T], threads: int, desc: s
     if total is None and hasattr(items, "__len__"):
         total = len(items)  # type: ignore[arg-type]
     if threads <= 1:
-        return [work(item) for item in tqdm(items, desc=desc, unit="frame", total=total)]
+        return [work(item) for item in tqdm(items, desc=desc, unit=unit, total=total)]
     with ThreadPoolExecutor(max_workers=threads) as pool:
-        return list(tqdm(pool.map(work, items), desc=desc, unit="frame", total=total))
+        return list(tqdm(pool.map(work, items), desc=desc, unit=unit, total=total))

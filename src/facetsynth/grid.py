@@ -14,6 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import cached_property
 
+import numba
 import numpy as np
 
 
@@ -141,3 +142,27 @@ class Bilinear:
         ft, fp = self.ft, self.fp
         return (1 - ft) * ((1 - fp) * a00 + fp * a01) + ft * ((1 - fp) * a10 + fp * a11)
 
+
+
+@numba.njit(cache=True, inline="always")
+def bilinear_at(table: np.ndarray, t: float, p: float, n_theta: int, n_phi: int) -> float:
+    """:class:`Bilinear` for one direction, in compiled kernels: ``table`` (n_theta * n_phi,) flat, (t, p) its
+    continuous cell coordinates (:meth:`DirectionGrid.coordinates`); theta clamped, phi periodic."""
+    t = min(max(t, 0.0), n_theta - 1.0)
+    t0 = min(int(np.floor(t)), n_theta - 2) if n_theta > 1 else 0
+    ft = t - t0 if n_theta > 1 else 0.0
+    t1 = min(t0 + 1, n_theta - 1)
+    fp0 = np.floor(p)
+    fp = p - fp0
+    p0 = int(fp0) % n_phi
+    p1 = (p0 + 1) % n_phi
+    return ((1 - ft) * ((1 - fp) * table[t0 * n_phi + p0] + fp * table[t0 * n_phi + p1])
+            + ft * ((1 - fp) * table[t1 * n_phi + p0] + fp * table[t1 * n_phi + p1]))
+
+
+@numba.njit(cache=True)
+def polar_coordinates(x: float, y: float, z: float, n_theta: int, n_phi: int) -> tuple[float, float]:
+    """:meth:`DirectionGrid.coordinates` of one direction, in compiled kernels."""
+    theta = np.arccos(min(max(z, 0.0), 1.0))
+    phi = np.arctan2(y, x) % (2.0 * np.pi)
+    return theta / (0.5 * np.pi / n_theta) - 0.5, phi / (2.0 * np.pi / n_phi) - 0.5

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 from scipy.spatial import Delaunay, QhullError
 
@@ -58,17 +59,6 @@ class LightTriangulation:
         t = (self.height - points[:, None, 2]) / np.where(up, directions[:, 2], 1.0)[None]
         return points[:, None, :2] + t[..., None] * directions[None, :, :2], up
 
-    def barycentric(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Light indices (M, 3), barycentric weights (M, 3) and inside-the-hull mask (M,) of points xy (M, 2)."""
-        tri = self.triangulation
-        simplex = tri.find_simplex(xy)
-        inside = simplex >= 0
-        s = np.where(inside, simplex, 0)
-        transform = tri.transform[s]                                         # (M, 3, 2)
-        b = np.einsum("mij,mj->mi", transform[:, :2], xy - transform[:, 2])
-        weights = np.concatenate([b, 1.0 - b.sum(axis=1, keepdims=True)], axis=1)
-        return tri.simplices[s], np.where(inside[:, None], weights, 0.0), inside
-
     def interpolate(self, values: np.ndarray, valid: np.ndarray, points: np.ndarray,
                     directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Per point, its light samples ``values`` (P, F) interpolated linearly at ``directions`` (N, 3).
@@ -81,13 +71,36 @@ class LightTriangulation:
         """
         n_points, n_dirs = len(points), len(directions)
         xy, up = self.hits(np.asarray(points, float), np.asarray(directions, float))
-        vertices, weights, inside = self.barycentric(xy.reshape(-1, 2))
-        vertices = vertices.reshape(n_points, n_dirs, 3)
-        weights = weights.reshape(n_points, n_dirs, 3)
-        rows = np.arange(n_points)[:, None, None]
-        ok = np.asarray(valid, bool)[rows, vertices]
-        w = np.where(ok, weights, 0.0)
-        total = w.sum(axis=-1)
-        defined = inside.reshape(n_points, n_dirs) & up[None] & (total > 1e-9)
-        value = np.einsum("pnk,pnk->pn", w, np.asarray(values, float)[rows, vertices])
-        return np.where(defined, value / np.where(defined, total, 1.0), 0.0), defined
+        simplex = self.triangulation.find_simplex(xy.reshape(-1, 2)).reshape(n_points, n_dirs)
+        simplex[:, ~up] = -1
+        return _barycentric_sum(np.asarray(values, float), np.asarray(valid, bool), xy, simplex,
+                                self.triangulation.transform, self.triangulation.simplices)
+
+
+@numba.njit(cache=True)
+def _barycentric_sum(values: np.ndarray, valid: np.ndarray, xy: np.ndarray, simplex: np.ndarray,
+                     transform: np.ndarray, vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Linear interpolation of each point's valid samples (P, F) at its hits ``xy`` (P, N, 2) in the triangles
+    ``simplex`` (P, N) (-1: none) of a Delaunay triangulation (scipy's ``transform`` and ``simplices``), the
+    barycentric weights of invalid lights dropped and the rest renormalised."""
+    n_points, n_dirs = simplex.shape
+    out = np.zeros((n_points, n_dirs))
+    defined = np.zeros((n_points, n_dirs), np.bool_)
+    for a in range(n_points):
+        for n in range(n_dirs):
+            s = simplex[a, n]
+            if s < 0:
+                continue
+            dx, dy = xy[a, n, 0] - transform[s, 2, 0], xy[a, n, 1] - transform[s, 2, 1]
+            b0 = transform[s, 0, 0] * dx + transform[s, 0, 1] * dy
+            b1 = transform[s, 1, 0] * dx + transform[s, 1, 1] * dy
+            total = value = 0.0
+            for k, b in ((0, b0), (1, b1), (2, 1.0 - b0 - b1)):
+                light = vertices[s, k]
+                if valid[a, light]:
+                    total += b
+                    value += b * values[a, light]
+            if total > 1e-9:
+                out[a, n] = value / total
+                defined[a, n] = True
+    return out, defined

@@ -17,11 +17,13 @@ Eq. 11 is printed with a factor 4 pi; with the paper's own normalisation of D
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
-from .grid import DirectionGrid, turn
+from .grid import DirectionGrid, bilinear_at, polar_coordinates, turn
 from .microfacet import fresnel
 
 # Eq. 5 is smooth in k (sec. 3): it is evaluated on this coarse grid of directions.
@@ -44,9 +46,50 @@ def projected_area_table(ndf: np.ndarray, grid: DirectionGrid, k: np.ndarray) ->
     A(k) = sum over cells of max(h . k, 0) D(h) dw, with D normalised by the
     caller. K is small (the shadowing grid), so this is one matrix product.
     """
+    return _projected_area(ndf.reshape(ndf.shape[0], -1), area_kernel(grid, k))
+
+
+def area_kernel(grid: DirectionGrid, k: np.ndarray) -> np.ndarray:
+    """max(h . k, 0) dw (T*F, K): the weights of :func:`projected_area_table`."""
     h = grid.directions.reshape(-1, 3)
-    kernel = np.clip(h @ k.T, 0.0, None) * grid.solid_angles.reshape(-1, 1)   # (T*F, K)
-    return ndf.reshape(ndf.shape[0], -1) @ kernel
+    return np.clip(h @ np.asarray(k, float).T, 0.0, None) * grid.solid_angles.reshape(-1, 1)
+
+
+def _projected_area(ndf: np.ndarray, kernel: np.ndarray) -> np.ndarray:
+    """ndf (P, T*F) @ kernel over only the cells some point's D covers (a partial NDF is 0 on about half)."""
+    cells = np.flatnonzero(np.any(ndf != 0, axis=0))
+    return ndf[:, cells] @ kernel[cells]
+
+
+@functools.lru_cache(maxsize=8)
+def _shadowing_kernel(grid: DirectionGrid) -> tuple[str, np.ndarray]:
+    """How :func:`shadowing_table` integrates eq. 5 on ``grid``, computed once per grid.
+
+    max(h . k, 0) depends on the azimuths of h and k only through their difference, so for each pair
+    of rings (h's, k's) A(k) is a circular correlation along phi: ("fft", the kernel's spectrum (T, Ts,
+    F/2 + 1)) when SHADOWING_GRID's sectors fall every m-th of the grid's (n_phi = m x 32: every grid
+    :func:`facetsynth.sharpness.grid_resolution` makes), O(T Ts F log F) per point against O(T F Ts Fs)
+    for the product with :func:`area_kernel`, which any other grid uses ("dense", (T*F, Ts*Fs))."""
+    if grid.n_phi % SHADOWING_GRID.n_phi:
+        return "dense", area_kernel(grid, SHADOWING_GRID.directions.reshape(-1, 3))
+    m = grid.n_phi // SHADOWING_GRID.n_phi
+    lag = (np.arange(grid.n_phi) - (m - 1) / 2) * grid.d_phi         # phi_h - phi_k for h's sector j m + lag
+    st, ct = np.sin(grid.theta)[:, None, None], np.cos(grid.theta)[:, None, None]
+    sk, ck = np.sin(SHADOWING_GRID.theta)[None, :, None], np.cos(SHADOWING_GRID.theta)[None, :, None]
+    kernel = np.clip(st * sk * np.cos(lag) + ct * ck, 0.0, None) * grid.solid_angles[:, :1, None]
+    return "fft", np.conj(np.fft.rfft(kernel, axis=-1))
+
+
+def _shadowing_area(ndf: np.ndarray, grid: DirectionGrid) -> np.ndarray:
+    """A(k) of eq. 5 (P, Ts*Fs) at SHADOWING_GRID's directions for NDFs (P, T, F), as
+    :func:`projected_area_table` (the method: :func:`_shadowing_kernel`)."""
+    method, kernel = _shadowing_kernel(grid)
+    if method == "dense":
+        return _projected_area(ndf.reshape(len(ndf), -1), kernel)
+    spectrum = np.fft.rfft(ndf, axis=-1).transpose(2, 0, 1)                          # (f, P, T)
+    summed = np.matmul(spectrum, kernel.transpose(2, 0, 1))                          # (f, P, Ts): sum over rings
+    corr = np.fft.irfft(summed.transpose(1, 2, 0), n=grid.n_phi, axis=-1)           # (P, Ts, F): every lag
+    return corr[..., :: grid.n_phi // SHADOWING_GRID.n_phi].reshape(len(ndf), -1)
 
 
 SHADOWING_METHODS = ("constrained", "unconstrained", "clipped")
@@ -77,7 +120,7 @@ def shadowing_table(ndf: np.ndarray, grid: DirectionGrid, constrained: bool | st
     k = SHADOWING_GRID.directions.reshape(-1, 3)
     norm = grid.integrate(ndf * grid.directions[..., 2])
     normalised = np.divide(ndf, norm[:, None, None], out=np.zeros_like(ndf), where=norm[:, None, None] > 0)
-    area = projected_area_table(normalised, grid, k)
+    area = _shadowing_area(normalised, grid)
     # A full normalised NDF gives S <= 1. A partial one overestimates S where it
     # misses part of eq. 5's domain: that is the bias of the unconstrained method
     # (sec. 5.1), kept unclipped; the cap only keeps the numbers finite.
@@ -111,16 +154,46 @@ def fit(specular_slice: np.ndarray, coverage: np.ndarray, view: np.ndarray, grid
     normal are excluded (F = 1 is assumed, sec. 5.1).
     """
     n_points = specular_slice.shape[0]
-    o = np.broadcast_to(np.asarray(view, float), (n_points, 3))
-    h = grid.directions.reshape(1, -1, 3)
-    i = reflect(o[:, None, :], h)                                     # (P, T*F, 3)
-    i_z = i[..., 2]
-    usable = i_z > np.cos(np.radians(grazing_deg))
-    at_i = grid.bilinear(i)
-    rho_s, cover = at_i(specular_slice), at_i(coverage)               # (P, T*F)
-    w = np.where(usable, confidence(i_z) * np.clip(cover, 0.0, 1.0), 0.0)
-    numerator = 4.0 * rho_s * i_z * o[:, 2:3]
-    return iterate(numerator, w, i, o, grid, constrained, tol, max_iter)
+    o = np.ascontiguousarray(np.broadcast_to(np.asarray(view, float), (n_points, 3)))
+    flat = (n_points, grid.n_theta * grid.n_phi)
+    numerator, w, s_t, s_p = _eq11_terms(np.asarray(specular_slice, float).reshape(flat),
+                                         np.asarray(coverage, float).reshape(flat), o,
+                                         np.ascontiguousarray(grid.directions.reshape(-1, 3)), grid.n_theta,
+                                         grid.n_phi, SHADOWING_GRID.n_theta, SHADOWING_GRID.n_phi,
+                                         np.cos(np.radians(grazing_deg)))
+    return iterate(numerator, w, (s_t, s_p), o, grid, constrained, tol, max_iter)
+
+
+@numba.njit(cache=True)
+def _eq11_terms(rho: np.ndarray, cover: np.ndarray, o: np.ndarray, h: np.ndarray, n_theta: int, n_phi: int,
+                s_theta: int, s_phi: int, cos_grazing: float):
+    """Per point and half-vector cell: the numerator of eq. 11, 4 rho~_s(i(h)) (i(h) . n)(o . n), and W of
+    eq. 12 times the light coverage at i(h) = refl(o, h) (0 where i(h) is steeper than the grazing limit),
+    and i(h)'s cell coordinates on the shadowing grid where W > 0 (0 elsewhere). ``rho``, ``cover`` (P, T*F) on the grid of ``h``
+    (T*F, 3); ``o`` (P, 3). One pass per point: the reflected directions differ from point to point
+    (per-point views) and are never stored."""
+    n_points, n_cells = rho.shape
+    n_theta_ratio, n_phi_ratio = s_theta / n_theta, s_phi / n_phi
+    numerator = np.zeros((n_points, n_cells))
+    w = np.zeros((n_points, n_cells))
+    s_t = np.empty((n_points, n_cells))
+    s_p = np.empty((n_points, n_cells))
+    for a in range(n_points):
+        ox, oy, oz = o[a, 0], o[a, 1], o[a, 2]
+        for c in range(n_cells):
+            hx, hy, hz = h[c, 0], h[c, 1], h[c, 2]
+            two_ho = 2.0 * (hx * ox + hy * oy + hz * oz)
+            ix, iy, iz = two_ho * hx - ox, two_ho * hy - oy, two_ho * hz - oz          # eq. 10
+            s_t[a, c] = s_p[a, c] = 0.0                  # S is not looked up where W = 0
+            if iz > cos_grazing:
+                t, p = polar_coordinates(ix, iy, iz, n_theta, n_phi)
+                cv = min(max(bilinear_at(cover[a], t, p, n_theta, n_phi), 0.0), 1.0)
+                w[a, c] = np.sqrt(max(iz, 0.0)) * cv                                      # eq. 12
+                if w[a, c] > 0:
+                    numerator[a, c] = 4.0 * bilinear_at(rho[a], t, p, n_theta, n_phi) * iz * oz
+                    s_t[a, c] = (t + 0.5) * n_theta_ratio - 0.5
+                    s_p[a, c] = (p + 0.5) * n_phi_ratio - 0.5
+    return numerator, w, s_t, s_p
 
 
 def iterate(numerator: np.ndarray, w: np.ndarray, i: np.ndarray, o: np.ndarray, grid: DirectionGrid,
@@ -129,28 +202,57 @@ def iterate(numerator: np.ndarray, w: np.ndarray, i: np.ndarray, o: np.ndarray, 
 
     ``numerator`` (P, T*F): 4 rho~_s(i(h)) (i(h) . n)(o . n) per half-vector
     cell; ``w`` (P, T*F) the confidence W; ``i`` (P, T*F, 3) the light
-    direction of each cell, ``o`` (P, 3) the view. Stops when the largest
+    direction of each cell, or its (t, p) coordinates on SHADOWING_GRID
+    (P, T*F) each; ``o`` (P, 3) the view. Stops when the largest
     relative change of D is below ``tol`` (or after ``max_iter``).
     """
     n_points = numerator.shape[0]
     support = w > 0
     numerator = np.where(support, numerator, 0.0)
     shape = (n_points,) + grid.shape
-    d = numerator.reshape(shape)                                       # S = 1: the starting point
+    d = numerator.reshape(shape).copy()                                # S = 1: the starting point
     iterations = np.zeros(n_points, int)
     active = np.ones(n_points, bool)
-    s_at_i, s_at_o = SHADOWING_GRID.bilinear(i), SHADOWING_GRID.bilinear(o[:, None, :])
+    if isinstance(i, tuple):
+        s_t, s_p = np.broadcast_arrays(*i)
+    else:
+        s_t, s_p = (np.broadcast_to(c, numerator.shape) for c in SHADOWING_GRID.coordinates(i))
+    o = np.broadcast_to(o, (n_points, 3))
+    flat = d.reshape(n_points, -1)
     for it in range(1, max_iter + 1):
-        s_table = shadowing_table(d, grid, constrained)                # eq. 5 from the current D
-        denom = s_at_i(s_table) * s_at_o(s_table)
-        new = np.divide(numerator, denom, out=np.zeros_like(numerator), where=denom > 1e-6).reshape(shape)  # eq. 11
-        change = np.abs(new - d).max(axis=(1, 2)) / np.maximum(np.abs(new).max(axis=(1, 2)), 1e-30)
-        d = np.where(active[:, None, None], new, d)
-        iterations[active] = it
-        active &= change > tol
-        if not active.any():
+        rows = np.flatnonzero(active)                                  # converged points keep their D
+        if rows.size == 0:
             break
+        s_table = shadowing_table(d[rows], grid, constrained)          # eq. 5 from the current D
+        s_at_o = SHADOWING_GRID.lookup(s_table, o[rows, None, :])[:, 0]
+        change = _eq11_update(flat, numerator, rows, s_table.reshape(rows.size, -1), s_t, s_p, s_at_o,
+                              *SHADOWING_GRID.shape)
+        iterations[rows] = it
+        active[rows] = change > tol
     return PartialNDF(ndf=d, confidence=w.reshape(shape), iterations=iterations, converged=~active)
+
+
+@numba.njit(cache=True)
+def _eq11_update(d: np.ndarray, numerator: np.ndarray, rows: np.ndarray, s_table: np.ndarray, s_t: np.ndarray,
+                 s_p: np.ndarray, s_at_o: np.ndarray, s_theta: int, s_phi: int) -> np.ndarray:
+    """One step of eq. 11 in place for the points ``rows`` of d (P, T*F): D = numerator / (S(i(h)) S(o)),
+    0 where the denominator is below 1e-6, with S (R, Ts*Fs) looked up bilinearly at i(h)'s coordinates
+    ``s_t``, ``s_p`` (P, T*F). Returns each point's largest change of D relative to its largest value (R,)."""
+    change = np.zeros(rows.size)
+    for r in range(rows.size):
+        a = rows[r]
+        largest_change = largest = 0.0
+        for c in range(d.shape[1]):
+            new = 0.0
+            if numerator[a, c] != 0.0:
+                denom = bilinear_at(s_table[r], s_t[a, c], s_p[a, c], s_theta, s_phi) * s_at_o[r]
+                if denom > 1e-6:
+                    new = numerator[a, c] / denom
+            largest_change = max(largest_change, abs(new - d[a, c]))
+            largest = max(largest, abs(new))
+            d[a, c] = new
+        change[r] = largest_change / max(largest, 1e-30)
+    return change
 
 
 def pooled_fit(specular: np.ndarray, valid: np.ndarray, points: np.ndarray, views: np.ndarray,

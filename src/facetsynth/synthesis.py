@@ -105,11 +105,13 @@ def pairwise_distance(d1: np.ndarray, w1: np.ndarray, d2: np.ndarray, w2: np.nda
     Every integral of eq. 15 factors into a matrix product (sqrt(W1 W2) =
     sqrt(W1) sqrt(W2)); computed in float64. Empty overlaps: inf.
     """
-    om = grid.solid_angles.reshape(-1)
+    w1 = np.asarray(w1).reshape(len(w1), -1)
+    cells = np.flatnonzero(np.any(w1 > SUPPORT, axis=0))   # every integral is 0 where no tuple of set 1 has W
+    om = grid.solid_angles.reshape(-1)[cells]
 
     def parts(d, w):
-        d = np.asarray(d, float).reshape(len(d), -1)
-        w = np.clip(np.asarray(w, float).reshape(len(w), -1), 0.0, None)
+        d = np.asarray(d, float).reshape(len(d), -1)[:, cells]
+        w = np.clip(np.asarray(w, float).reshape(len(w), -1)[:, cells], 0.0, None)
         m = (w > SUPPORT).astype(float)
         sw = np.sqrt(w) * m
         return d, m, sw

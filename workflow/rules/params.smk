@@ -28,7 +28,7 @@ rule params:
         "results/{sample}/logs/params.log",
     benchmark:
         "results/{sample}/benchmarks/params.tsv"
-    threads: 1
+    threads: 2   # tiles of points in parallel
     resources:
         mem_mb=3000,
     script:

@@ -18,7 +18,7 @@ rule separate:
         "results/{sample}/logs/separate.log",
     benchmark:
         "results/{sample}/benchmarks/separate.tsv"
-    threads: 1
+    threads: 2   # frames read in parallel
     resources:
         mem_mb=2000,
     script:

@@ -10,4 +10,5 @@ run_stage(snakemake, params.run, geometry=i.geometry, kd_path=i.kd, specular=i.s
           grazing_deg=p.grazing_deg, eta_min=p.eta_min, eta_max=p.eta_max,
           eta_default=p.eta_default, min_samples=p.min_samples, max_std=p.max_std,
           min_ndf_fraction=p.min_ndf_fraction, max_split_difference=p.max_split_difference,
-          material_tolerance=p.material_tolerance, max_eta_interval=p.max_eta_interval)
+          material_tolerance=p.material_tolerance, max_eta_interval=p.max_eta_interval,
+          threads=snakemake.threads)

@@ -14,12 +14,12 @@ import logging
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from .. import params as fit
 from ..cluster import material_groups
 from ..errors import InputError
 from ..fileio import atomic_dir, read_exr, read_json, read_npy, write_json
+from ..frames import map_frames
 from ..grid import DirectionGrid
 from ..metrics import finite_or_none, spread_about_mean
 from ..microfacet import fresnel, half_vector
@@ -86,7 +86,7 @@ def build_model(ndf: np.ndarray, grid: DirectionGrid, neighbours: np.ndarray, we
 
 def grazing_fresnel(model: SVBRDF, ks_pt: np.ndarray, capture: RectifiedCapture, specular, valid,
                     grazing_deg: float, min_ndf_fraction: float, cosine: np.ndarray,
-                    covered: np.ndarray) -> dict[str, np.ndarray]:
+                    covered: np.ndarray, threads: int = 1) -> dict[str, np.ndarray]:
     """F_m of eq. 20 for every grazing sample (light steeper than ``grazing_deg``) of every visible point.
 
     ``model`` holds the NDFs as synthesis left them (carrying F, eq. 11) and
@@ -99,21 +99,22 @@ def grazing_fresnel(model: SVBRDF, ks_pt: np.ndarray, capture: RectifiedCapture,
     specular signal, and so F_m, is noise; and only where the NDF was
     measured or synthesized (``covered`` (R, T, F) bool, the synthesis domain
     before push-pull, for at least half of the mixture's weight): push-pull's
-    extrapolation is no basis for eq. 20.
+    extrapolation is no basis for eq. 20. Tiles of points run on ``threads`` threads.
     """
     points = capture.points
     cos_g = np.cos(np.radians(grazing_deg))
     peak = model.ndf.reshape(model.ndf.shape[0], -1).max(axis=1)
     carried = (model.ndf * cosine).reshape(model.ndf.shape[0], -1).astype(float)
     covered = np.asarray(covered, float).reshape(model.ndf.shape[0], -1)
-    out = {k: [] for k in ("point", "f_m", "c", "c_ref", "rho_s")}
-    for tile in tqdm(list(tiles(capture.n_points)), desc="params: grazing samples", unit="tile"):
+    keys = ("point", "f_m", "c", "c_ref", "rho_s")
+
+    def tile_samples(tile: slice) -> dict[str, np.ndarray]:
         wi, _ = light_geometry(points[tile][:, None, :], capture.light_positions[None])   # (p, F, 3)
         ok = np.asarray(valid[tile], bool) & (wi[..., 2] > 0) & (wi[..., 2] < cos_g)
         ok &= capture.visible[tile][:, None] & (ks_pt[tile][:, None] > 0)
         pp, ff = np.nonzero(ok)
         if pp.size == 0:
-            continue
+            return {}
         index = pp + tile.start
         o = capture.view_position - points[index]
         o /= np.linalg.norm(o, axis=-1, keepdims=True)
@@ -127,11 +128,16 @@ def grazing_fresnel(model: SVBRDF, ks_pt: np.ndarray, capture: RectifiedCapture,
         rho_s = np.asarray(specular[tile], float)[pp, ff].mean(axis=-1)
         f_m = fit.measured_fresnel(rho_s, ks_pt[index] * spec)
         keep = lobe & (spec > 0)
-        for k, v in (("point", index), ("f_m", f_m), ("c", c), ("c_ref", c_ref), ("rho_s", rho_s)):
-            out[k].append(v[keep])
-    return {k: (np.concatenate(v) if v else np.zeros(0)) for k, v in out.items()}
+        return {k: v[keep] for k, v in zip(keys, (index, f_m, c, c_ref, rho_s))}
+
+    found = [t for t in map_frames(tile_samples, list(tiles(capture.n_points)), threads, "params: grazing samples",
+                                   unit="tile") if t]
+    return {k: (np.concatenate([t[k] for t in found]) if found else np.zeros(0)) for k in keys}
 
 
+# Grazing samples (evenly strided) per material that eq. 19 is fitted on: a native-resolution sample has
+# millions, and eta's interval counts representatives, not samples (INTERVAL_UNIT).
+ETA_SAMPLES = 200_000
 # The independent units of eta's interval (fit.eta_profile's n): the samples of one representative share its
 # NDF's error at the grazing half vectors (docs/decisions.md "Metrics a user trusts; eta's interval").
 INTERVAL_UNIT = "representative"
@@ -146,9 +152,9 @@ INTERVAL_METHOD = ("profile likelihood of eq. 19 (linear residuals, as fitted): 
 def fit_eta(model: SVBRDF, w18: np.ndarray, samples: dict[str, np.ndarray], material: np.ndarray, bounds,
             default: float, min_samples: int, max_std: float, max_split_difference: float = 0.1,
             max_eta_interval: float = 0.2, interval_unit: str = INTERVAL_UNIT) -> tuple:
-    """eta per material by LM (eq. 19) on the grazing samples of its points (a point belongs to the
-    material of its largest eq. 18 weight's representative); every representative of the material takes
-    it, and each point the eq. 18 mixture of its representatives' eta.
+    """eta per material by LM (eq. 19) on the grazing samples of its points (up to ETA_SAMPLES, evenly
+    strided; a point belongs to the material of its largest eq. 18 weight's representative); every
+    representative of the material takes it, and each point the eq. 18 mixture of its representatives' eta.
 
     The standard error of one fit assumes independent residuals, but the
     NDF's errors are shared by a point's samples; so the fit is repeated on
@@ -174,6 +180,7 @@ def fit_eta(model: SVBRDF, w18: np.ndarray, samples: dict[str, np.ndarray], mate
                       "point": samples["point"], "sample": None}[interval_unit]
     for m in np.unique(material):
         sel = np.flatnonzero(sample_material == m)
+        sel = sel[:: max(1, int(np.ceil(sel.size / ETA_SAMPLES)))]
         c_ref = None if samples["c_ref"] is None else samples["c_ref"][sel]
         res = fit.fit_eta(samples["f_m"][sel], samples["c"][sel], c_ref, **kw)
         interval = fit.eta_profile(samples["f_m"][sel], samples["c"][sel], c_ref, bounds=bounds,
@@ -257,7 +264,7 @@ def run(geometry: str | Path, kd_path: str | Path, specular: str | Path, valid: 
         min_samples: int = 8,
         max_std: float = 0.15, min_ndf_fraction: float = 0.05, max_split_difference: float = 0.1,
         material_tolerance: float = 0.25, max_eta_interval: float = 0.2,
-        rotation: str | Path | None = None) -> None:
+        rotation: str | Path | None = None, threads: int = 1) -> None:
     """Fit the remaining parameters and write the SVBRDF folder ``svbrdf_out`` and the metrics.
 
     Eq. 11 assumes F = 1, so the synthesized NDFs carry a Fresnel factor whose
@@ -287,7 +294,8 @@ def run(geometry: str | Path, kd_path: str | Path, specular: str | Path, valid: 
     carrying, ks_pt, ks_rep = build_model(table, grid, nb, w18, kd, col, capture, reps, turn)
     log.info("%d representatives, ks median %.4g; %d points", len(reps), float(np.median(ks_rep)), n)
     covered = np.asarray(_load(synthesis_confidence, len(reps), "the synthesis confidence"), float) > SUPPORT
-    samples = grazing_fresnel(carrying, ks_pt, capture, spec, ok, grazing_deg, min_ndf_fraction, cosine, covered)
+    samples = grazing_fresnel(carrying, ks_pt, capture, spec, ok, grazing_deg, min_ndf_fraction, cosine, covered,
+                              threads)
     log.info("%d grazing samples (lights beyond %.0f deg) in the lobes", samples["f_m"].size, grazing_deg)
     material = material_groups(kd[reps.astype(np.intp)], material_tolerance)
     log.info("%d materials by kd (tolerance %.2f)", material.max() + 1, material_tolerance)

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import logging
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
 from ..fileio import atomic_path, read_frame, write_exr, write_json
+from ..frames import map_frames
 from ..render import light_geometry
 from ..separation import brdf_samples, diffuse_minimum, specular_residual
 from .common import RectifiedCapture, flag_degenerate, tiles
@@ -23,16 +25,18 @@ SIGNAL_RATIO = 0.5
 # Fewer points than this fraction with specular signal: a matte sample, or lights that miss every highlight;
 # a diffuse-only model is all the capture supports. Black markers, dust and dead pixels stay below it.
 MIN_SIGNAL_FRACTION = 0.01
+FRAME_BLOCK = 32    # frames read before their samples are written
 
 
 def run(geometry: str | Path, kd_out: str | Path, specular_out: str | Path, valid_out: str | Path,
-        metrics_out: str | Path, threshold: float = 0.05) -> None:
+        metrics_out: str | Path, threshold: float = 0.05, threads: int = 1) -> None:
     """Per point and light: rho by eq. 8, kd = pi rho_d by eq. 9, rho~_s = rho - rho_d.
 
     Writes ``kd`` (EXR on the rectified grid), the specular residual
     (P, F, 3) float32 and the sample validity (P, F) as memory-mappable .npy
     (frames are streamed in; memory does not grow with the sample size).
-    Invalid samples: saturated, or a point outside the camera's view.
+    Invalid samples: saturated, or a point outside the camera's view. Frames are read on ``threads``
+    threads.
     """
     capture = RectifiedCapture.load(geometry)
     n_points, n_frames = capture.n_points, len(capture.frame_files)
@@ -40,15 +44,27 @@ def run(geometry: str | Path, kd_out: str | Path, specular_out: str | Path, vali
     with atomic_path(specular_out, suffix=".npy") as tmp_spec, atomic_path(valid_out, suffix=".npy") as tmp_valid:
         rho = np.lib.format.open_memmap(tmp_spec, mode="w+", dtype=np.float32, shape=(n_points, n_frames, 3))
         valid = np.lib.format.open_memmap(tmp_valid, mode="w+", dtype=bool, shape=(n_points, n_frames))
-        for q, file in enumerate(tqdm(capture.frame_files, desc="separate: eq. 8", unit="frame")):
-            radiance, saturated = read_frame(file)
+
+        def frame_samples(q: int) -> tuple[np.ndarray, np.ndarray]:
+            radiance, saturated = read_frame(capture.frame_files[q])
             sample, _ = brdf_samples(radiance.reshape(-1, 1, 3), points,
                                      capture.light_positions[q:q + 1], capture.light_intensities[q:q + 1])
-            rho[:, q] = sample[:, 0]
-            valid[:, q] = capture.visible & ~saturated.ravel()
+            return sample[:, 0].astype(np.float32), capture.visible & ~saturated.ravel()
+
+        # frames are read FRAME_BLOCK at a time and written as one block of columns: a frame alone would
+        # touch every page of the (P, F, 3) file for 12 bytes a point
+        with ThreadPoolExecutor(max_workers=max(1, threads)) as pool, \
+                tqdm(total=n_frames, desc="separate: eq. 8", unit="frame") as bar:
+            for start in range(0, n_frames, FRAME_BLOCK):
+                block = range(start, min(start + FRAME_BLOCK, n_frames))
+                samples = list(pool.map(frame_samples, block))
+                rho[:, block.start:block.stop] = np.stack([s for s, _ in samples], axis=1)
+                valid[:, block.start:block.stop] = np.stack([v for _, v in samples], axis=1)
+                bar.update(len(block))
         kd = np.zeros((n_points, 3))
         signal = np.zeros(n_points, bool)
-        for tile in tqdm(list(tiles(n_points)), desc="separate: eq. 9", unit="tile"):
+
+        def separate_tile(tile: slice) -> None:
             rho_tile = np.asarray(rho[tile], float)
             radiance = _radiance(rho_tile, points[tile], capture)
             rho_d = diffuse_minimum(rho_tile, radiance, valid[tile], threshold)
@@ -57,6 +73,8 @@ def run(geometry: str | Path, kd_out: str | Path, specular_out: str | Path, vali
             peak = np.where(valid[tile], residual.mean(axis=-1), 0.0).max(axis=1, initial=0.0)
             diffuse = rho_d.mean(axis=-1)
             signal[tile] = (diffuse > 0) & (peak >= SIGNAL_RATIO * diffuse)
+
+        map_frames(separate_tile, list(tiles(n_points)), threads, "separate: eq. 9", unit="tile")
         rho.flush()
         valid.flush()
         del rho, valid

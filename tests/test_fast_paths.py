@@ -1,0 +1,119 @@
+"""Issue 14: the compiled and batched paths that make the paper's scale fast, against the plain
+computations they replace (scipy's map_coordinates, the dense eq. 5 integral, numpy's lstsq, Delaunay
+barycentric weights, the frame-at-a-time separation)."""
+
+import numpy as np
+import pytest
+from scipy.ndimage import map_coordinates
+
+from facetsynth import cluster, partial_ndf as pndf
+from facetsynth.coverage import LightFootprint
+from facetsynth.grid import DirectionGrid
+from facetsynth.lightplane import LightTriangulation
+
+from test_extremes import one_material, rig_lights, write_rectified
+from test_sampling_invariance import paper_lights
+
+
+@pytest.mark.parametrize("grid", [DirectionGrid(16, 64), DirectionGrid(24, 96), DirectionGrid(32, 128),
+                                  DirectionGrid(12, 48)])
+def test_shadowing_area_by_fft_equals_the_dense_integral(grid):
+    """A(k) of eq. 5 at the shadowing grid's directions: the circular correlation along phi (grids with
+    n_phi a multiple of 32) and the dense product (any other grid, here 12 x 48) give the integral
+    sum max(h . k, 0) D(h) dw to 1e-12 of its largest value, for partial NDFs that are 0 on half the cells."""
+    rng = np.random.default_rng(3)
+    d = rng.random((6,) + grid.shape) * (rng.random((6,) + grid.shape) > 0.5)
+    d[0] = 0.0                                                       # an all-zero NDF stays all zero
+    dense = pndf.projected_area_table(d, grid, pndf.SHADOWING_GRID.directions.reshape(-1, 3))
+    fast = pndf._shadowing_area(d, grid)
+    assert pndf._shadowing_kernel(grid)[0] == ("dense" if grid.n_phi % 32 else "fft")
+    assert np.abs(fast - dense).max() <= 1e-12 * np.abs(dense).max()
+    assert np.all(fast[0] == 0.0) or np.abs(fast[0]).max() < 1e-15
+
+
+def test_coverage_kernel_equals_scipy_map_coordinates():
+    """The compiled coverage (one pass per point and direction) against the distance map read by scipy's
+    map_coordinates (order 1, constant mode, infinitely far beyond the raster): equal to 1e-12, for points
+    on and off the sample plane and directions that miss the lights or never reach their plane."""
+    footprint = LightFootprint.from_lights(paper_lights())
+    grid = DirectionGrid(16, 64)
+    directions = np.concatenate([grid.directions.reshape(-1, 3), [[0.0, 0.6, 0.8], [1.0, 0.0, 0.0]]])
+    rng = np.random.default_rng(4)
+    points = np.column_stack([rng.uniform(-0.2, 0.2, 40), rng.uniform(-0.1, 0.3, 40), rng.uniform(-0.01, 0.02, 40)])
+    up = directions[:, 2] > 1e-3
+    t = np.where(up, (footprint.height - points[:, None, 2]) / np.where(up, directions[:, 2], 1.0), 0.0)
+    hit = points[:, None, :2] + t[..., None] * directions[:, :2]
+    col, row = ((hit - footprint.origin) / footprint.pitch).transpose(2, 0, 1)
+    dist = map_coordinates(footprint.distance, [row.ravel(), col.ravel()], order=1, mode="constant",
+                           cval=np.inf).reshape(row.shape)
+    reference = np.where(up, np.clip((1.25 * footprint.spacing - dist) / (0.5 * footprint.spacing), 0, 1), 0)
+    got = footprint.coverage(points, directions)
+    assert 0.1 < (got > 0).mean() < 0.9                             # both sides of the footprint's edge
+    np.testing.assert_allclose(got, reference, rtol=0, atol=1e-12)
+    assert np.all(got[:, -1] == 0.0)                                 # parallel to the plane: never reaches it
+
+
+def test_light_plane_interpolation_equals_scipy_barycentric_weights():
+    """Per point and direction: scipy's Delaunay point location and its own barycentric transform,
+    weights of invalid lights dropped and the rest renormalised, against the compiled sum (1e-12)."""
+    lights = paper_lights()
+    tri = LightTriangulation.from_lights(lights)
+    rng = np.random.default_rng(5)
+    points = np.column_stack([rng.uniform(-0.05, 0.05, 12), rng.uniform(0.05, 0.15, 12), np.zeros(12)])
+    directions = DirectionGrid(16, 64).directions.reshape(-1, 3)
+    values = rng.random((12, len(lights)))
+    valid = rng.random((12, len(lights))) > 0.2
+    got, defined = tri.interpolate(values, valid, points, directions)
+    xy, up = tri.hits(points, directions)
+    want, want_defined = np.zeros(got.shape), np.zeros(got.shape, bool)
+    for a in range(len(points)):
+        simplex = tri.triangulation.find_simplex(xy[a])
+        for n in np.flatnonzero((simplex >= 0) & up):
+            s = simplex[n]
+            b = tri.triangulation.transform[s, :2] @ (xy[a, n] - tri.triangulation.transform[s, 2])
+            weights = np.append(b, 1 - b.sum()) * valid[a, tri.triangulation.simplices[s]]
+            if weights.sum() > 1e-9:
+                want[a, n] = weights @ values[a, tri.triangulation.simplices[s]] / weights.sum()
+                want_defined[a, n] = True
+    np.testing.assert_array_equal(defined, want_defined)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+    assert 0.05 < defined.mean() < 0.95
+
+
+def test_batched_constrained_least_squares_equals_lstsq_per_system():
+    """Eq. 18's weights for many points at once (pseudo-inverse of each KKT system) against numpy's lstsq
+    of each system alone, with and without the ridge, including a singular system (two identical
+    representatives: the minimum-norm solution, equal weights) and sum(w) = 1 throughout."""
+    rng = np.random.default_rng(6)
+    a = rng.random((7, 40, 3))
+    a[3, :, 2] = a[3, :, 1]                                          # identical representatives
+    b = rng.random((7, 40))
+    for ridge in (0.0, 1e-3):
+        got = cluster.constrained_least_squares(a, b, ridge)
+        for i in range(len(a)):
+            ata = a[i].T @ a[i]
+            if ridge > 0:
+                ata = ata + ridge * np.trace(ata) / 3 * np.eye(3)
+            kkt = np.block([[2 * ata, np.ones((3, 1))], [np.ones((1, 3)), np.zeros((1, 1))]])
+            want = np.linalg.lstsq(kkt, np.append(2 * a[i].T @ b[i], 1.0), rcond=None)[0][:3]
+            np.testing.assert_allclose(got[i], want / want.sum(), rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(got.sum(axis=1), 1.0, rtol=1e-12)
+        assert abs(got[3, 1] - got[3, 2]) < 1e-9                     # the singular system splits evenly
+
+
+def test_separation_in_frame_blocks_equals_one_frame_at_a_time(tmp_path, monkeypatch):
+    """separate reads the frames in blocks on threads and writes them as blocks of columns: the outputs are
+    bit for bit those of one frame at a time on one thread."""
+    from facetsynth.plane import PlaneGrid
+    from facetsynth.stages import separate
+    geometry = write_rectified(tmp_path / "cap", one_material((0.2, 0.3, 0.4), (0.5,) * 3), PlaneGrid(0.1, 0.1, 9, 9),
+                               rig_lights(5, 4))
+    outputs = {}
+    for name, block, threads in (("one", 1, 1), ("blocks", 7, 2)):
+        monkeypatch.setattr(separate, "FRAME_BLOCK", block)
+        out = tmp_path / name
+        separate.run(geometry, out / "kd.exr", out / "spec.npy", out / "valid.npy", out / "m.json", threads=threads)
+        outputs[name] = [np.load(out / f) for f in ("spec.npy", "valid.npy")]
+    for a, b in zip(outputs["one"], outputs["blocks"]):
+        np.testing.assert_array_equal(a, b)
+    assert outputs["one"][0].shape == (81, 33, 3) and outputs["one"][0].any()
