@@ -8,8 +8,9 @@
 #                results/bench/tradeoff.csv and tradeoff.png (about 17 min on 2 cores); restrict with
 #                make bench BENCH_PRESETS=fast BENCH_SCENES=demo, or BENCH_ARGS=--dry-run
 #   make bench-scale - time, memory and disk per stage against the points (64^2 ... 800^2 at 480 frames) and
-#                the frames (120 ... 2600 at 128^2): results/bench/scale.csv and scale.png; restrict with
-#                make bench-scale SCALE_ARGS="--points 64 128 256 --frames 120 480"
+#                the frames (120 ... 2600 at 128^2): results/bench/scale.csv and scale.png (about 45 min; each
+#                run's frames and tables are deleted once its figures are recorded: 800^2 writes ~50 GB);
+#                restrict with make bench-scale SCALE_ARGS="--points 64 128 256 --frames 120 480"
 
 PYTHON ?= $(shell command -v python3.11 || command -v python3)
 VENV := .venv
@@ -59,7 +60,7 @@ bench: $(VENV)/.installed-bench
 	$(BIN)/python workflow/scripts/bench.py --cores $(CORES) --presets $(BENCH_PRESETS) --scenes $(BENCH_SCENES) $(BENCH_ARGS)
 
 bench-scale: $(VENV)/.installed-bench
-	$(BIN)/python workflow/scripts/bench_scale.py --cores $(CORES) $(SCALE_ARGS)
+	$(BIN)/python workflow/scripts/bench_scale.py --cores $(CORES) --prune $(SCALE_ARGS)
 
 clean:
 	rm -rf results/* .snakemake

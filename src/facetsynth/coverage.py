@@ -46,7 +46,7 @@ class LightFootprint:
                          np.asarray(points, float), np.asarray(directions, float))
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _coverage(distance: np.ndarray, origin: np.ndarray, pitch: float, height: float, spacing: float,
               points: np.ndarray, directions: np.ndarray) -> np.ndarray:
     """Per point and direction: where the ray meets the lights' plane, the distance map there (linear

@@ -144,7 +144,7 @@ class Bilinear:
 
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, nogil=True, inline="always")
 def bilinear_at(table: np.ndarray, t: float, p: float, n_theta: int, n_phi: int) -> float:
     """:class:`Bilinear` for one direction, in compiled kernels: ``table`` (n_theta * n_phi,) flat, (t, p) its
     continuous cell coordinates (:meth:`DirectionGrid.coordinates`); theta clamped, phi periodic."""
@@ -160,7 +160,7 @@ def bilinear_at(table: np.ndarray, t: float, p: float, n_theta: int, n_phi: int)
             + ft * ((1 - fp) * table[t1 * n_phi + p0] + fp * table[t1 * n_phi + p1]))
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def polar_coordinates(x: float, y: float, z: float, n_theta: int, n_phi: int) -> tuple[float, float]:
     """:meth:`DirectionGrid.coordinates` of one direction, in compiled kernels."""
     theta = np.arccos(min(max(z, 0.0), 1.0))

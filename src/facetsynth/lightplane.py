@@ -77,7 +77,7 @@ class LightTriangulation:
                                 self.triangulation.transform, self.triangulation.simplices)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _barycentric_sum(values: np.ndarray, valid: np.ndarray, xy: np.ndarray, simplex: np.ndarray,
                      transform: np.ndarray, vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Linear interpolation of each point's valid samples (P, F) at its hits ``xy`` (P, N, 2) in the triangles

@@ -164,7 +164,7 @@ def fit(specular_slice: np.ndarray, coverage: np.ndarray, view: np.ndarray, grid
     return iterate(numerator, w, (s_t, s_p), o, grid, constrained, tol, max_iter)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _eq11_terms(rho: np.ndarray, cover: np.ndarray, o: np.ndarray, h: np.ndarray, n_theta: int, n_phi: int,
                 s_theta: int, s_phi: int, cos_grazing: float):
     """Per point and half-vector cell: the numerator of eq. 11, 4 rho~_s(i(h)) (i(h) . n)(o . n), and W of
@@ -232,7 +232,7 @@ def iterate(numerator: np.ndarray, w: np.ndarray, i: np.ndarray, o: np.ndarray, 
     return PartialNDF(ndf=d, confidence=w.reshape(shape), iterations=iterations, converged=~active)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _eq11_update(d: np.ndarray, numerator: np.ndarray, rows: np.ndarray, s_table: np.ndarray, s_t: np.ndarray,
                  s_p: np.ndarray, s_at_o: np.ndarray, s_theta: int, s_phi: int) -> np.ndarray:
     """One step of eq. 11 in place for the points ``rows`` of d (P, T*F): D = numerator / (S(i(h)) S(o)),

@@ -50,7 +50,7 @@ if SCATTER_TILES == 1:
             "results/{sample}/logs/resample.log",
         benchmark:
             "results/{sample}/benchmarks/resample.tsv"
-        threads: 1
+        threads: 2   # tiles of points in parallel
         resources:
             mem_mb=2000,
         script:
@@ -125,7 +125,7 @@ if SCATTER_TILES == 1:
             "results/{sample}/logs/partial_ndf.log",
         benchmark:
             "results/{sample}/benchmarks/partial_ndf.tsv"
-        threads: 1
+        threads: 2   # tiles of points in parallel
         resources:
             mem_mb=3000,
         script:

@@ -5,7 +5,8 @@ frames) under the paper's 480 lights (rig/descriptions/paper-scale.yaml), its ca
 sample spans at least P x P rectified points, fitted at P x P (rectify.resolution). Frames sweep: the same
 scene at 128 x 128 points under 120, 480, 1360 and 2600 lights (the demo camera). Every run is its own
 Snakemake working directory, results/bench/scale/P{P}_F{F}/ (links to the repository, its own rig and
-sample sheet), up to results/scale/svbrdf, with scatter.tiles 2 (both cores on the per-point stages). A
+sample sheet), up to results/scale/svbrdf, in one job per stage (scatter.tiles 1: the per-point stages run
+their tiles on the job's 2 threads, with nothing to join). A
 finished run is not repeated (Snakemake finds its outputs up to date), so an interrupted bench resumes.
 
 Writes results/bench/scale.csv (facetsynth.bench.SCALE_COLUMNS: one row per run and stage, plus stage
@@ -13,7 +14,7 @@ Writes results/bench/scale.csv (facetsynth.bench.SCALE_COLUMNS: one row per run 
 scale.png (wall seconds against P and F per stage, log-log, with each stage's fitted exponent).
 
     python workflow/scripts/bench_scale.py [--points 64 128 256 512 800] [--frames 120 480 1360 2600]
-                                           [--cores 2] [--collect-only] [-- extra snakemake args]
+                                           [--cores 2] [--collect-only] [--prune] [-- extra snakemake args]
 """
 
 from __future__ import annotations
@@ -62,7 +63,7 @@ def prepare(workdir: Path, points: int, frames: int) -> None:
         rig.write_text(text)
     for name, text in (("samples.tsv", f"sample\tsource\tpath\trig\nscale\tvirtual\t{SCENE}\t{rig}\n"),
                        ("scale.yaml", yaml.safe_dump({"samples": "samples.tsv", "rectify": {"resolution": points},
-                                                      "scatter": {"tiles": 2}}))):
+                                                      "scatter": {"tiles": 1}}))):
         if not (workdir / name).is_file() or (workdir / name).read_text() != text:
             (workdir / name).write_text(text)
 
@@ -80,6 +81,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=REPO / "results/bench")
     parser.add_argument("--cores", default="2")
     parser.add_argument("--collect-only", action="store_true", help="only (re)write the csv and the plot")
+    parser.add_argument("--prune", action="store_true",
+                        help="after recording a run's figures, delete its frames and per-point tables (disk)")
     parser.add_argument("snakemake_args", nargs="*", help="after --: passed to every snakemake call")
     args = parser.parse_args(argv)
 
@@ -98,14 +101,19 @@ def main(argv: list[str] | None = None) -> int:
                       f"{workdir}/results/scale/logs", file=sys.stderr)
                 return finished.returncode
             print(f"bench-scale: P {p}^2, F {f} done in {time.monotonic() - start:.0f} s", file=sys.stderr, flush=True)
-        if (workdir / "results/scale/svbrdf").is_dir():
+            (workdir / "results/scale/benchmarks/scale_rows.json").unlink(missing_ok=True)
+            recorded(workdir / "results/scale", p, f)          # right after the run: its floor from the page cache
+            if args.prune:
+                prune(workdir / "results/scale")
+        if (workdir / "results/scale/benchmarks/scale_rows.json").is_file() or \
+                (workdir / "results/scale/svbrdf").is_dir():
             done_runs.append((p, f, workdir / "results/scale"))
 
-    rows = [row for p, f, root in done_runs for row in bench.scale_rows(root, p * p, f) + [floor(root, p * p, f)]]
+    rows = [row for p, f, root in done_runs for row in recorded(root, p, f)]
     csv_path = bench.write_csv(rows, args.out / "scale.csv", bench.SCALE_COLUMNS)
     exponents = bench.growth_exponents(rows)
     title = (f"facetsynth: growth with points and frames\n{datetime.date.today().isoformat()}, "
-             f"{bench.machine_description()}, snakemake --cores {args.cores}, scatter.tiles 2")
+             f"{bench.machine_description()}, snakemake --cores {args.cores}, scatter.tiles 1")
     png_path = bench.plot_scale(rows, exponents, args.out / "scale.png", title)
     for stage, (in_points, in_frames) in exponents.items():
         print(f"bench-scale: {stage:12s} wall ~ P^{_fmt(in_points)} F^{_fmt(in_frames)}", file=sys.stderr)
@@ -113,13 +121,27 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def floor(root: Path, points: int, frames: int) -> dict:
-    """The run's floor (:func:`facetsynth.bench.read_floor`), measured once, right after the run, and kept in
-    ``read_frames.json`` beside its results: a later --collect-only must not measure it under other load."""
-    saved = root / "benchmarks" / "read_frames.json"
+def recorded(root: Path, points: int, frames: int) -> list[dict]:
+    """The run's rows (:func:`facetsynth.bench.scale_rows` and its floor, :func:`facetsynth.bench.read_floor`),
+    measured once and kept in ``benchmarks/scale_rows.json`` beside its results: a later --collect-only must
+    not measure the floor under other load, and needs no intermediates of a pruned run."""
+    saved = root / "benchmarks" / "scale_rows.json"
     if not saved.is_file():
-        saved.write_text(json.dumps(bench.read_floor(root, points, frames)))
+        rows = bench.scale_rows(root, points * points, frames) + [bench.read_floor(root, points * points, frames)]
+        saved.write_text(json.dumps(rows))
     return json.loads(saved.read_text())
+
+
+PRUNED = ("capture", "hdr", "rectify/frames", "separate", "resample", "partial_ndf")
+
+
+def prune(root: Path) -> None:
+    """--prune: a recorded run's frames and (P, F) / (P, T, F) tables removed (the paper's 800^2 alone writes
+    about 50 GB); its metrics, logs, benchmarks and fitted SVBRDF stay. Running the bench again repeats it."""
+    for name in PRUNED:
+        for path in sorted((root / name).rglob("*"), reverse=True) if (root / name).is_dir() else []:
+            if path.is_file() and path.name != "metrics.json":
+                path.unlink()
 
 
 def _fmt(value: float | None) -> str:

@@ -13,5 +13,5 @@ run_stage(snakemake, cluster.run, geometry=snakemake.input.geometry, ndf=snakema
           distortion=p.distortion, spread=p.spread, min_representatives=p.min_representatives,
           max_representatives=p.max_representatives, scan_points=p.scan_points,
           neighbours=p.neighbours, radius=p.radius_lambda, ridge=p.ridge, n_init=p.n_init, seed=p.seed,
-          constrained=p.partial_ndf["shadowing"], grazing_deg=p.partial_ndf["grazing_deg"],
+          constrained=p.partial_ndf["shadowing"], grazing_deg=p.partial_ndf["grazing_deg"], threads=snakemake.threads,
           tol=p.partial_ndf["tolerance"], max_iter=p.partial_ndf["max_iterations"])

@@ -20,6 +20,7 @@ from tqdm import tqdm
 from .. import cluster
 from .. import partial_ndf as pndf
 from ..fileio import NpyRows, read_exr, read_json, write_json, write_npy
+from ..frames import imap
 from ..grid import DirectionGrid
 from ..partial_ndf import relative_l2
 from .common import RectifiedCapture, tiles
@@ -41,7 +42,7 @@ def run(geometry: str | Path, ndf: str | Path, confidence: str | Path, grid_path
         min_representatives: int = 1, max_representatives: int = 64, distortion: float = 0.08, spread: float = 0.15,
         scan_points: int = 2048, neighbours: int = 16, radius: float = 5.0, ridge: float = 1e-3, n_init: int = 3,
         seed: int = 0, constrained: bool = True, grazing_deg: float = 80.0, tol: float = 1e-3,
-        max_iter: int = 30, kd: str | Path | None = None) -> None:
+        max_iter: int = 30, kd: str | Path | None = None, threads: int = 1) -> None:
     """Cluster the visible points' partial NDFs; write labels, representatives, neighbours, weights.
 
     The number of representatives: ``representatives`` "auto" chooses it from
@@ -60,7 +61,8 @@ def run(geometry: str | Path, ndf: str | Path, confidence: str | Path, grid_path
     without the samples (None) it is the representative's own partial NDF.
     ``kd`` (``separate``'s map): points are compared by their diffuse albedo
     too (:func:`facetsynth.cluster.with_albedo`), so that two materials of one
-    lobe shape stay two (eta and isotropy are decided per material by kd).
+    lobe shape stay two (eta and isotropy are decided per material by kd). The partial NDFs are read and
+    coarsened on ``threads`` threads.
     """
     t0 = time.perf_counter()
     capture = RectifiedCapture.load(geometry)
@@ -70,7 +72,7 @@ def run(geometry: str | Path, ndf: str | Path, confidence: str | Path, grid_path
     visible = np.flatnonzero(capture.visible)
     if visible.size == 0:
         raise ValueError("no visible points to cluster")
-    d, w, cgrid = coarse_points(d_all, w_all, visible, grid)
+    d, w, cgrid = coarse_points(d_all, w_all, visible, grid, threads=threads)
     log.info("points compared on a %d x %d grid (partial NDFs on %d x %d)", *cgrid.shape, *grid.shape)
     domain = cluster.common_domain(w)
     log.info("features on the cells %s", "every point sees (W >= 0.6 at 97 %% of the points): %d of %d" % (
@@ -174,10 +176,12 @@ def run(geometry: str | Path, ndf: str | Path, confidence: str | Path, grid_path
     write_json(metrics_out, metrics)
 
 
-def coarse_points(d_all, w_all, rows: np.ndarray, grid: DirectionGrid, tile: int = 4096):
+def coarse_points(d_all, w_all, rows: np.ndarray, grid: DirectionGrid, tile: int = 4096, threads: int = 1):
     """:func:`facetsynth.cluster.coarse` of the points ``rows`` of the memory-mapped (P, T, F) tables, a tile
-    at a time: memory holds the coarse tables (16 x smaller on the demo's grid), never the full ones."""
-    blocks = [cluster.coarse(d_all[rows[t]], w_all[rows[t]], grid) for t in tiles(rows.size, tile)]
+    at a time on ``threads`` threads: memory holds the coarse tables (16 x smaller on the demo's grid), never
+    the full ones."""
+    blocks = list(imap(lambda t: cluster.coarse(d_all[rows[t]], w_all[rows[t]], grid), list(tiles(rows.size, tile)),
+                       threads, "cluster: coarse tables", unit="tile"))
     return np.concatenate([b[0] for b in blocks]), np.concatenate([b[1] for b in blocks]), blocks[0][2]
 
 

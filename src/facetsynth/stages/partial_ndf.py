@@ -7,10 +7,10 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from .. import partial_ndf as pndf
 from ..fileio import NpyRows, atomic_path, npy_writer, read_json, write_json
+from ..frames import imap
 from ..grid import DirectionGrid
 from .common import TILE_POINTS, RectifiedCapture, join_parts, part_points, part_records, tiles
 
@@ -40,8 +40,8 @@ class Settings:
 
 def run(geometry: str | Path, slice_path: str | Path, coverage_path: str | Path, grid_path: str | Path,
         ndf_out: str | Path, confidence_out: str | Path, metrics_out: str | Path,
-        settings: Settings = Settings()) -> None:
-    """Fit every point's partial NDF, in tiles of points over memory-mapped tensors.
+        settings: Settings = Settings(), threads: int = 1) -> None:
+    """Fit every point's partial NDF, in tiles of points over memory-mapped tensors, on ``threads`` threads.
 
     For virtual captures, accuracy is measured against
     :func:`facetsynth.partial_ndf.recoverable_ndf` over cells with W >= 0.5,
@@ -52,20 +52,21 @@ def run(geometry: str | Path, slice_path: str | Path, coverage_path: str | Path,
     capture = RectifiedCapture.load(geometry)
     grid = DirectionGrid.from_dict(read_json(grid_path))
     fitted = _fit_points(capture, grid, slice_path, coverage_path, slice(0, capture.n_points), ndf_out,
-                         confidence_out, settings)
+                         confidence_out, settings, threads)
     write_json(metrics_out, _metrics(capture, grid, fitted, settings))
 
 
 def run_part(geometry: str | Path, slice_path: str | Path, coverage_path: str | Path, grid_path: str | Path,
              part: int, parts: int, ndf_out: str | Path, confidence_out: str | Path, record_out: str | Path,
-             settings: Settings = Settings()) -> None:
+             settings: Settings = Settings(), threads: int = 1) -> None:
     """One scatter part (``scatter.tiles`` > 1): the partial NDFs of :func:`part_points` only, and a record
     (.npz: the points' iterations, convergence and scored errors) that :func:`gather` turns into the
     metrics of an unsplit run."""
     capture = RectifiedCapture.load(geometry)
     grid = DirectionGrid.from_dict(read_json(grid_path))
     points = part_points(capture.n_points, part, parts, TILE_POINTS)
-    fitted = _fit_points(capture, grid, slice_path, coverage_path, points, ndf_out, confidence_out, settings)
+    fitted = _fit_points(capture, grid, slice_path, coverage_path, points, ndf_out, confidence_out, settings,
+                         threads)
     with atomic_path(record_out, suffix=".npz") as tmp:
         np.savez(tmp, start=points.start, **fitted)
 
@@ -83,9 +84,10 @@ def gather(geometry: str | Path, grid_path: str | Path, ndf_parts: list[str | Pa
 
 
 def _fit_points(capture: RectifiedCapture, grid: DirectionGrid, slice_path, coverage_path, points: slice,
-                ndf_out, confidence_out, settings: Settings) -> dict:
+                ndf_out, confidence_out, settings: Settings, threads: int = 1) -> dict:
     """Fit the partial NDFs of ``points`` (a slice of the capture's points, whole tiles) into (len, T, F)
-    float32 files; returns the points' iterations, convergence and the scored points' errors."""
+    float32 files, tiles on ``threads`` threads; returns the points' iterations, convergence and the scored
+    points' errors."""
     table, cover = NpyRows(slice_path), NpyRows(coverage_path)
     truth = capture.truth()
     scored = scored_points(capture, truth)
@@ -94,12 +96,15 @@ def _fit_points(capture: RectifiedCapture, grid: DirectionGrid, slice_path, cove
     iterations, converged = np.zeros(n, int), np.zeros(n, bool)
     views = capture.view_directions(settings.per_point_view)
     shape = (n,) + grid.shape
+
+    def fit_tile(local: slice) -> tuple[slice, pndf.PartialNDF]:
+        tile = slice(points.start + local.start, points.start + local.stop)
+        return local, settings.fit(np.asarray(table[tile], float), np.asarray(cover[tile], float), views[tile], grid)
+
     with npy_writer(ndf_out, np.float32, shape) as write_ndf, npy_writer(confidence_out, np.float32, shape) as write_w:
-        for local in tqdm(list(tiles(n, TILE_POINTS)), desc="partial_ndf", unit="tile"):
+        for local, fit in imap(fit_tile, list(tiles(n, TILE_POINTS)), threads, "partial_ndf", unit="tile"):
             tile = slice(points.start + local.start, points.start + local.stop)
-            s, c = np.asarray(table[tile], float), np.asarray(cover[tile], float)
             view = views[tile]
-            fit = settings.fit(s, c, view, grid)
             write_ndf(fit.ndf)
             write_w(fit.confidence)
             iterations[local], converged[local] = fit.iterations, fit.converged

@@ -17,10 +17,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from ..coverage import LightFootprint
 from ..fileio import NpyRows, atomic_path, npy_writer, write_json, write_npy
+from ..frames import imap
 from ..grid import DirectionGrid
 from ..microfacet import half_vector
 from ..lightplane import LightTriangulation
@@ -83,7 +83,7 @@ class Settings:
 
 def run(geometry: str | Path, specular: str | Path, valid: str | Path, slice_out: str | Path,
         coverage_out: str | Path, colour_out: str | Path, grid_out: str | Path, metrics_out: str | Path,
-        settings: Settings = Settings()) -> None:
+        settings: Settings = Settings(), threads: int = 1) -> None:
     """Writes, per point: the specular slice rho~_s(i) on the grid (P, T, F) float32
     (channel mean), its light coverage (P, T, F) float16 and the specular
     colour (P, 3) (channel ratios, mean 1), the grid definition (JSON) and the
@@ -92,7 +92,7 @@ def run(geometry: str | Path, specular: str | Path, valid: str | Path, slice_out
     spec, ok = NpyRows(specular), NpyRows(valid)
     grid, metrics = settings.direction_grid(capture, spec, ok)
     log.info("direction grid %d x %d: %s", grid.n_theta, grid.n_phi, metrics["reason"])
-    colour = _resample_points(capture, grid, spec, ok, slice(0, capture.n_points), slice_out, coverage_out)
+    colour = _resample_points(capture, grid, spec, ok, slice(0, capture.n_points), slice_out, coverage_out, threads)
     write_npy(colour_out, colour.astype(np.float32))
     write_json(grid_out, grid.to_dict())
     write_json(metrics_out, metrics)
@@ -100,14 +100,14 @@ def run(geometry: str | Path, specular: str | Path, valid: str | Path, slice_out
 
 def run_part(geometry: str | Path, specular: str | Path, valid: str | Path, part: int, parts: int,
              slice_out: str | Path, coverage_out: str | Path, record_out: str | Path,
-             settings: Settings = Settings()) -> None:
+             settings: Settings = Settings(), threads: int = 1) -> None:
     """One scatter part (``scatter.tiles`` > 1): the slices and coverage of :func:`part_points` only, and a
     record (.npz: the points' specular colour) that :func:`gather` joins."""
     capture = RectifiedCapture.load(geometry)
     spec, ok = NpyRows(specular), NpyRows(valid)
     grid, _ = settings.direction_grid(capture, spec, ok)
     points = part_points(capture.n_points, part, parts, TILE_POINTS)
-    colour = _resample_points(capture, grid, spec, ok, points, slice_out, coverage_out)
+    colour = _resample_points(capture, grid, spec, ok, points, slice_out, coverage_out, threads)
     with atomic_path(record_out, suffix=".npz") as tmp:
         np.savez(tmp, start=points.start, colour=colour)
 
@@ -127,8 +127,9 @@ def gather(geometry: str | Path, specular: str | Path, valid: str | Path, slice_
 
 
 def _resample_points(capture: RectifiedCapture, grid: DirectionGrid, spec, ok, points: slice, slice_out,
-                     coverage_out) -> np.ndarray:
-    """The slices and coverage of ``points`` (whole tiles) into (len, T, F) files; returns their colour."""
+                     coverage_out, threads: int = 1) -> np.ndarray:
+    """The slices and coverage of ``points`` (whole tiles) into (len, T, F) files, tiles on ``threads``
+    threads; returns their colour."""
     footprint = LightFootprint.from_lights(capture.light_positions)
     log.info("lights: %d, spacing %.1f mm, plane z = %.1f mm", len(capture.light_positions),
              1e3 * footprint.spacing, 1e3 * footprint.height)
@@ -137,16 +138,20 @@ def _resample_points(capture: RectifiedCapture, grid: DirectionGrid, spec, ok, p
     n = points.stop - points.start
     colour = np.ones((n, 3))
     shape = (n,) + grid.shape
+
+    def resample_tile(local: slice) -> tuple[slice, np.ndarray, np.ndarray]:
+        tile = slice(points.start + local.start, points.start + local.stop)
+        s, valid = np.asarray(spec[tile], float), ok[tile]
+        xyz = capture.points[tile]
+        value, defined = lights.interpolate(s.mean(axis=-1), valid, xyz, directions)
+        table = push_pull((value * defined).reshape((-1,) + grid.shape), defined.reshape((-1,) + grid.shape).astype(float))
+        total = np.where(valid[..., None], s, 0.0).sum(axis=1)
+        mean = total.mean(axis=1, keepdims=True)
+        colour[local] = np.divide(total, mean, out=np.ones_like(total), where=mean > 0)
+        return local, table, footprint.coverage(xyz, directions).reshape((-1,) + grid.shape)
+
     with npy_writer(slice_out, np.float32, shape) as write_slice, npy_writer(coverage_out, np.float16, shape) as write_cover:
-        for local in tqdm(list(tiles(n)), desc="resample", unit="tile"):
-            tile = slice(points.start + local.start, points.start + local.stop)
-            s, valid = np.asarray(spec[tile], float), ok[tile]
-            xyz = capture.points[tile]
-            value, defined = lights.interpolate(s.mean(axis=-1), valid, xyz, directions)
-            write_slice(push_pull((value * defined).reshape((-1,) + grid.shape),
-                                  defined.reshape((-1,) + grid.shape).astype(float)))
-            write_cover(footprint.coverage(xyz, directions).reshape((-1,) + grid.shape))
-            total = np.where(valid[..., None], s, 0.0).sum(axis=1)
-            mean = total.mean(axis=1, keepdims=True)
-            colour[local] = np.divide(total, mean, out=np.ones_like(total), where=mean > 0)
+        for _, table, cover in imap(resample_tile, list(tiles(n)), threads, "resample", unit="tile"):
+            write_slice(table)
+            write_cover(cover)
     return colour

@@ -6,6 +6,8 @@ import logging
 import sys
 from typing import Any, Callable
 
+from threadpoolctl import threadpool_limits
+
 from ..errors import InputError
 
 
@@ -13,7 +15,9 @@ def run_stage(snakemake: Any, stage: Callable[..., Any], **kwargs: Any) -> None:
     """Call ``stage(**kwargs)`` with logging sent to the rule's log file.
 
     Bad input (InputError) ends the job with one clear line naming the file
-    and the problem, in the log and on stderr, instead of a traceback.
+    and the problem, in the log and on stderr, instead of a traceback. BLAS
+    and OpenMP pools are limited to the rule's ``threads`` (a ``script:``
+    job does not get Snakemake's OMP_NUM_THREADS, which only ``shell:`` sets).
     """
     handlers: list[logging.Handler] = [logging.StreamHandler(sys.stderr)]
     if snakemake.log:
@@ -23,7 +27,8 @@ def run_stage(snakemake: Any, stage: Callable[..., Any], **kwargs: Any) -> None:
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     log = logging.getLogger(f"facetsynth.{snakemake.rule}")
     try:
-        stage(**kwargs)
+        with threadpool_limits(limits=snakemake.threads):      # BLAS keeps to the cores the job was given
+            stage(**kwargs)
     except InputError as exc:
         log.error("%s", exc)
         print(f"facetsynth {snakemake.rule}: error: {exc}", file=sys.__stderr__)
