@@ -194,3 +194,32 @@ def test_growth_exponents_recover_power_laws():
     exponents = bench.growth_exponents(rows)
     assert exponents["cluster"][0] == pytest.approx(1.5) and exponents["cluster"][1] == pytest.approx(1.0)
     assert exponents["params"] == (None, None)       # one size: no exponent
+
+
+def test_bench_scale_records_a_run_before_pruning_it(tmp_path, repo):
+    """make bench-scale --prune: a run's rows (stages, total, floor) are recorded right after it, in
+    benchmarks/scale_rows.json; pruning deletes its frames and per-point tables but keeps metrics, logs,
+    benchmarks and the SVBRDF; the recorded rows still give the sizes the tables had."""
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("bench_scale", repo / "workflow/scripts/bench_scale.py")
+    bench_scale = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench_scale)
+    root = tmp_path / "results/scale"
+    for k, stage in enumerate(bench.FIT_STAGES):
+        write_benchmark(root / "benchmarks" / f"{stage}.tsv", 1.0 + k, 0.5 + k, 100.0 * (k + 1))
+        (root / stage).mkdir(parents=True)
+        (root / stage / "table.npy").write_bytes(b"x" * 1000 * (k + 1))
+        (root / stage / "metrics.json").write_text("{}")
+    (root / "hdr/frames").mkdir(parents=True)
+    (root / "svbrdf").mkdir()
+    (root / "svbrdf/model.json").write_text("{}")
+    rows = bench_scale.recorded(root, 64, 480)
+    bench_scale.prune(root)
+    assert not (root / "partial_ndf/table.npy").exists() and not (root / "resample/table.npy").exists()
+    assert (root / "partial_ndf/metrics.json").is_file() and (root / "svbrdf/model.json").is_file()
+    assert (root / "cluster/table.npy").is_file()                     # small tables are kept
+    again = bench_scale.recorded(root, 64, 480)
+    assert again == rows
+    by_stage = {r["stage"]: r for r in again}
+    assert by_stage["partial_ndf"]["bytes_written"] == 1000 * (bench.FIT_STAGES.index("partial_ndf") + 1) + 2
+    assert by_stage["read_frames"]["points"] == 64 * 64 and "total" in by_stage

@@ -35,11 +35,6 @@ def reflect(o: np.ndarray, h: np.ndarray) -> np.ndarray:
     return 2.0 * np.sum(h * o, axis=-1, keepdims=True) * h - o
 
 
-def confidence(i_z: np.ndarray) -> np.ndarray:
-    """W(h) = [(refl(o, h) . n)^(1/2)]_+ (eq. 12), from the z of the reflected direction."""
-    return np.sqrt(np.clip(i_z, 0.0, None))
-
-
 def projected_area_table(ndf: np.ndarray, grid: DirectionGrid, k: np.ndarray) -> np.ndarray:
     """A(k) of eq. 5 for tabulated NDFs (P, T, F) at directions k (K, 3): (P, K).
 
@@ -167,11 +162,11 @@ def fit(specular_slice: np.ndarray, coverage: np.ndarray, view: np.ndarray, grid
 @numba.njit(cache=True, nogil=True)
 def _eq11_terms(rho: np.ndarray, cover: np.ndarray, o: np.ndarray, h: np.ndarray, n_theta: int, n_phi: int,
                 s_theta: int, s_phi: int, cos_grazing: float):
-    """Per point and half-vector cell: the numerator of eq. 11, 4 rho~_s(i(h)) (i(h) . n)(o . n), and W of
-    eq. 12 times the light coverage at i(h) = refl(o, h) (0 where i(h) is steeper than the grazing limit),
-    and i(h)'s cell coordinates on the shadowing grid where W > 0 (0 elsewhere). ``rho``, ``cover`` (P, T*F) on the grid of ``h``
-    (T*F, 3); ``o`` (P, 3). One pass per point: the reflected directions differ from point to point
-    (per-point views) and are never stored."""
+    """Per point and half-vector cell: the numerator of eq. 11, 4 rho~_s(i(h)) (i(h) . n)(o . n); W of eq. 12,
+    [(i(h) . n)^(1/2)]_+, times the light coverage at i(h) = refl(o, h) (0 where i(h) is steeper than the
+    grazing limit); and i(h)'s cell coordinates on the shadowing grid where W > 0 (0 elsewhere). ``rho``,
+    ``cover`` (P, T*F) on the grid of ``h`` (T*F, 3); ``o`` (P, 3). One pass per point: the reflected
+    directions differ from point to point (per-point views) and are never stored."""
     n_points, n_cells = rho.shape
     n_theta_ratio, n_phi_ratio = s_theta / n_theta, s_phi / n_phi
     numerator = np.zeros((n_points, n_cells))
@@ -196,13 +191,13 @@ def _eq11_terms(rho: np.ndarray, cover: np.ndarray, o: np.ndarray, h: np.ndarray
     return numerator, w, s_t, s_p
 
 
-def iterate(numerator: np.ndarray, w: np.ndarray, i: np.ndarray, o: np.ndarray, grid: DirectionGrid,
-            constrained: bool = True, tol: float = 1e-3, max_iter: int = 30) -> PartialNDF:
+def iterate(numerator: np.ndarray, w: np.ndarray, i_coordinates: tuple[np.ndarray, np.ndarray], o: np.ndarray,
+            grid: DirectionGrid, constrained: bool = True, tol: float = 1e-3, max_iter: int = 30) -> PartialNDF:
     """Eqs. 11 and 5 alternated from S = 1: D(h) = numerator(h) / (S(i(h)) S(o)) on the support W > 0.
 
     ``numerator`` (P, T*F): 4 rho~_s(i(h)) (i(h) . n)(o . n) per half-vector
-    cell; ``w`` (P, T*F) the confidence W; ``i`` (P, T*F, 3) the light
-    direction of each cell, or its (t, p) coordinates on SHADOWING_GRID
+    cell; ``w`` (P, T*F) the confidence W; ``i_coordinates`` the (t, p)
+    coordinates on SHADOWING_GRID of each cell's light direction i(h)
     (P, T*F) each; ``o`` (P, 3) the view. Stops when the largest
     relative change of D is below ``tol`` (or after ``max_iter``).
     """
@@ -213,10 +208,7 @@ def iterate(numerator: np.ndarray, w: np.ndarray, i: np.ndarray, o: np.ndarray, 
     d = numerator.reshape(shape).copy()                                # S = 1: the starting point
     iterations = np.zeros(n_points, int)
     active = np.ones(n_points, bool)
-    if isinstance(i, tuple):
-        s_t, s_p = np.broadcast_arrays(*i)
-    else:
-        s_t, s_p = (np.broadcast_to(c, numerator.shape) for c in SHADOWING_GRID.coordinates(i))
+    s_t, s_p = np.broadcast_arrays(*i_coordinates)
     o = np.broadcast_to(o, (n_points, 3))
     flat = d.reshape(n_points, -1)
     for it in range(1, max_iter + 1):
@@ -301,7 +293,7 @@ def pooled_fit(specular: np.ndarray, valid: np.ndarray, points: np.ndarray, view
     o_ref = np.asarray(view, float).reshape(1, 3)
     i = reflect(o_ref[:, None, :], grid.directions.reshape(1, -1, 3))
     w = np.mean(w_members, axis=0).reshape(1, -1)
-    return iterate(numerator, w, i, o_ref, grid, constrained, tol, max_iter)
+    return iterate(numerator, w, SHADOWING_GRID.coordinates(i), o_ref, grid, constrained, tol, max_iter)
 
 
 def fresnel_cosine(view: np.ndarray, grid: DirectionGrid) -> np.ndarray:

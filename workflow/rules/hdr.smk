@@ -17,6 +17,6 @@ rule hdr:
         "results/{sample}/benchmarks/hdr.tsv"
     threads: 2   # frames in parallel (facetsynth.frames)
     resources:
-        mem_mb=3000,   # make bench-scale: 2.8 GB peak with a 640 x 424 camera (512^2 points)
+        mem_mb=7000,   # make bench-scale: 6.5 GB peak at the paper's 800^2 (1176 x 784 camera)
     script:
         "../scripts/hdr.py"

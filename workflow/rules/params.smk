@@ -30,6 +30,6 @@ rule params:
         "results/{sample}/benchmarks/params.tsv"
     threads: 2   # tiles of points in parallel
     resources:
-        mem_mb=3000,
+        mem_mb=3500,   # make bench-scale: 3.2 GB peak at 800^2
     script:
         "../scripts/params.py"

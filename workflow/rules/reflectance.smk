@@ -20,7 +20,7 @@ rule separate:
         "results/{sample}/benchmarks/separate.tsv"
     threads: 2   # frames read in parallel
     resources:
-        mem_mb=2000,
+        mem_mb=5000,   # make bench-scale: 4.8 GB peak at 800^2 (the memory-mapped (P, F, 3) table)
     script:
         "../scripts/separate.py"
 

@@ -3,14 +3,12 @@
 from __future__ import annotations
 
 import logging
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from ..fileio import atomic_path, read_frame, write_exr, write_json
-from ..frames import map_frames
+from ..frames import imap, map_frames
 from ..render import light_geometry
 from ..separation import brdf_samples, diffuse_minimum, specular_residual
 from .common import RectifiedCapture, flag_degenerate, tiles
@@ -51,16 +49,16 @@ def run(geometry: str | Path, kd_out: str | Path, specular_out: str | Path, vali
                                      capture.light_positions[q:q + 1], capture.light_intensities[q:q + 1])
             return sample[:, 0].astype(np.float32), capture.visible & ~saturated.ravel()
 
-        # frames are read FRAME_BLOCK at a time and written as one block of columns: a frame alone would
-        # touch every page of the (P, F, 3) file for 12 bytes a point
-        with ThreadPoolExecutor(max_workers=max(1, threads)) as pool, \
-                tqdm(total=n_frames, desc="separate: eq. 8", unit="frame") as bar:
-            for start in range(0, n_frames, FRAME_BLOCK):
-                block = range(start, min(start + FRAME_BLOCK, n_frames))
-                samples = list(pool.map(frame_samples, block))
-                rho[:, block.start:block.stop] = np.stack([s for s, _ in samples], axis=1)
-                valid[:, block.start:block.stop] = np.stack([v for _, v in samples], axis=1)
-                bar.update(len(block))
+        # written FRAME_BLOCK frames at a time as one block of columns: a frame alone would touch every
+        # page of the (P, F, 3) file for 12 bytes a point
+        block = []
+        for q, samples in enumerate(imap(frame_samples, range(n_frames), threads, "separate: eq. 8")):
+            block.append(samples)
+            if len(block) == FRAME_BLOCK or q == n_frames - 1:
+                columns = slice(q + 1 - len(block), q + 1)
+                rho[:, columns] = np.stack([s for s, _ in block], axis=1)
+                valid[:, columns] = np.stack([v for _, v in block], axis=1)
+                block = []
         kd = np.zeros((n_points, 3))
         signal = np.zeros(n_points, bool)
 
