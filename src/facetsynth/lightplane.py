@@ -50,6 +50,9 @@ class LightTriangulation:
             triangulation = Delaunay(xy)
         except (QhullError, ValueError) as exc:
             raise ValueError(f"{problem}: {str(exc).strip().splitlines()[0]}") from None
+        # scipy computes the barycentric transforms on first use and find_simplex reads them without the GIL:
+        # computed here, once, so that threads sharing the triangulation never replace them under each other
+        triangulation.transform
         return cls(triangulation, float(np.median(positions[:, 2])))
 
     def hits(self, points: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
