@@ -97,13 +97,13 @@ def _fit_points(capture: RectifiedCapture, grid: DirectionGrid, slice_path, cove
     views = capture.view_directions(settings.per_point_view)
     shape = (n,) + grid.shape
 
-    def fit_tile(local: slice) -> tuple[slice, pndf.PartialNDF]:
+    def fit_tile(local: slice) -> tuple[slice, slice, pndf.PartialNDF]:
         tile = slice(points.start + local.start, points.start + local.stop)
-        return local, settings.fit(np.asarray(table[tile], float), np.asarray(cover[tile], float), views[tile], grid)
+        return local, tile, settings.fit(np.asarray(table[tile], float), np.asarray(cover[tile], float),
+                                         views[tile], grid)
 
     with npy_writer(ndf_out, np.float32, shape) as write_ndf, npy_writer(confidence_out, np.float32, shape) as write_w:
-        for local, fit in imap(fit_tile, list(tiles(n, TILE_POINTS)), threads, "partial_ndf", unit="tile"):
-            tile = slice(points.start + local.start, points.start + local.stop)
+        for local, tile, fit in imap(fit_tile, list(tiles(n, TILE_POINTS)), threads, "partial_ndf", unit="tile"):
             view = views[tile]
             write_ndf(fit.ndf)
             write_w(fit.confidence)

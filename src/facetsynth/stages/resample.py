@@ -139,7 +139,7 @@ def _resample_points(capture: RectifiedCapture, grid: DirectionGrid, spec, ok, p
     colour = np.ones((n, 3))
     shape = (n,) + grid.shape
 
-    def resample_tile(local: slice) -> tuple[slice, np.ndarray, np.ndarray]:
+    def resample_tile(local: slice) -> tuple[np.ndarray, np.ndarray]:
         tile = slice(points.start + local.start, points.start + local.stop)
         s, valid = np.asarray(spec[tile], float), ok[tile]
         xyz = capture.points[tile]
@@ -148,10 +148,10 @@ def _resample_points(capture: RectifiedCapture, grid: DirectionGrid, spec, ok, p
         total = np.where(valid[..., None], s, 0.0).sum(axis=1)
         mean = total.mean(axis=1, keepdims=True)
         colour[local] = np.divide(total, mean, out=np.ones_like(total), where=mean > 0)
-        return local, table, footprint.coverage(xyz, directions).reshape((-1,) + grid.shape)
+        return table, footprint.coverage(xyz, directions).reshape((-1,) + grid.shape)
 
     with npy_writer(slice_out, np.float32, shape) as write_slice, npy_writer(coverage_out, np.float16, shape) as write_cover:
-        for _, table, cover in imap(resample_tile, list(tiles(n)), threads, "resample", unit="tile"):
+        for table, cover in imap(resample_tile, list(tiles(n)), threads, "resample", unit="tile"):
             write_slice(table)
             write_cover(cover)
     return colour
