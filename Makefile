@@ -4,12 +4,13 @@
 #   make test-scenes - the slow whole-workflow scene tests of issue 13 (about 10 min; CI runs them after make test)
 #   make test-cluster - two samples through a single-node SLURM cluster on localhost against a local run (about
 #                3 min; installs Debian's slurmctld, slurmd, slurm-client and munge when missing: needs root)
-#   make bench - run every preset (fast, balanced, accurate) on demo, wallpaper and satin and write
-#                results/bench/tradeoff.csv and tradeoff.png (about 17 min on 2 cores); restrict with
+#   make bench - run every preset (fast, balanced, accurate) on demo, wallpaper, satin (native: 168^2) and
+#                paper-256 (the paper-scale scene and lights, 256^2 native) and write results/bench/tradeoff.csv
+#                and tradeoff.png (about 25 min on 2 cores); restrict with
 #                make bench BENCH_PRESETS=fast BENCH_SCENES=demo, or BENCH_ARGS=--dry-run
 #   make bench-scale - time, memory and disk per stage against the points (64^2 ... 800^2 at 480 frames) and
 #                the frames (120 ... 2600 at 128^2): results/bench/scale.csv and scale.png (about 45 min; each
-#                run's frames and tables are deleted once its figures are recorded: 800^2 writes ~50 GB);
+#                run's frames and tables are deleted once its figures are recorded: 800^2 writes ~20 GB);
 #                restrict with make bench-scale SCALE_ARGS="--points 64 128 256 --frames 120 480"
 
 PYTHON ?= $(shell command -v python3.11 || command -v python3)
@@ -17,7 +18,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 CORES ?= 2
 BENCH_PRESETS ?= fast balanced accurate
-BENCH_SCENES ?= demo wallpaper satin
+BENCH_SCENES ?= demo wallpaper satin paper-256
 BENCH_ARGS ?=
 SCALE_ARGS ?=
 

@@ -109,8 +109,7 @@ def test_card_runs_no_synthesis_search_and_loses_nothing(card_run, tmp_path):
         (card_run / "results/card/logs/synthesize.log").read_text()
     res = card_run / "results/card"
     searched = tmp_path / "metrics.json"
-    synthesize.run(res / "rectify/geometry.json", res / "partial_ndf/ndf.npy", res / "partial_ndf/confidence.npy",
-                   res / "resample/grid.json", res / "cluster/representatives.npy", res / "cluster/neighbours.npy",
+    synthesize.run(res / "rectify/geometry.json", res / "partial_ndf/ndf", res / "resample/grid.json", res / "cluster/representatives.npy", res / "cluster/neighbours.npy",
                    res / "cluster/weights.npy", tmp_path / "ndf.npy", tmp_path / "confidence.npy",
                    tmp_path / "cosine.npy", tmp_path / "grid.json", searched, isotropic_threshold=0.0,
                    rep_ndf=res / "cluster/representative_ndf.npy",

@@ -83,8 +83,7 @@ def hdr_paths(root: Path) -> dict:
 
 
 def pndf_paths(root: Path) -> dict:
-    return {"ndf_out": root / "partial_ndf/ndf.npy", "confidence_out": root / "partial_ndf/confidence.npy",
-            "metrics_out": root / "partial_ndf/metrics.json"}
+    return {"ndf_out": root / "partial_ndf/ndf", "metrics_out": root / "partial_ndf/metrics.json"}
 
 
 @pytest.fixture(scope="module")
@@ -107,13 +106,13 @@ def work(tmp_path_factory, repo):
     hdr.run(root / "capture", **hdr_paths(ref))
     rectify.run(ref / "hdr/manifest.json", ref / "rectify/frames", ref / "rectify/geometry.json",
                 ref / "rectify/metrics.json", resolution=16)
-    inputs = {"geometry": ref / "rectify/geometry.json", "slice_path": ref / "resample/slice.npy",
-              "coverage_path": ref / "resample/coverage.npy", "grid_path": ref / "resample/grid.json"}
+    inputs = {"geometry": ref / "rectify/geometry.json", "slice_path": ref / "resample/slice",
+              "grid_path": ref / "resample/grid.json"}
     separate.run(geometry=inputs["geometry"], kd_out=ref / "separate/kd.exr",
                  specular_out=ref / "separate/specular.npy",
                  valid_out=ref / "separate/valid.npy", metrics_out=ref / "separate/metrics.json")
     resample.run(geometry=inputs["geometry"], specular=ref / "separate/specular.npy", valid=ref / "separate/valid.npy",
-                 slice_out=inputs["slice_path"], coverage_out=inputs["coverage_path"],
+                 slice_out=inputs["slice_path"],
                  colour_out=ref / "resample/colour.npy", grid_out=inputs["grid_path"],
                  metrics_out=ref / "resample/metrics.json", settings=resample.Settings(n_theta_range=(8, 8)))
     with pytest.MonkeyPatch.context() as patch:
@@ -175,15 +174,15 @@ def test_hdr_rerun_after_sigkill_is_bitwise_an_uninterrupted_run(work, tmp_path,
     assert_same_files(root / "hdr", work["ref"] / "hdr")
 
 
-# partial_ndf writes its two tensors tile by tile (fileio.npy_writer), then renames them into place
-# (the confidence first), then writes the metrics.
+# partial_ndf writes its support table (facetsynth.tables) tile by tile into a staging folder, renames the
+# mask, then writes the offsets and table.json, publishes the folder, then writes the metrics.
 PNDF_KILLS = {
-    # in the third tile: both tensors' temporaries (their headers and two tiles) written, neither renamed.
-    "mid-write of both tensors": dict(owner="facetsynth.partial_ndf", name="fit", call=3,
-                                      left=["partial_ndf/.ndf.npy.*.tmp.npy", "partial_ndf/.confidence.npy.*.tmp.npy"]),
-    # between files: the confidence renamed into place, the NDF's finished temporary not.
-    "between the confidence and the NDF": dict(owner="os", name="replace", call=2,
-                                               left=["partial_ndf/confidence.npy", "partial_ndf/.ndf.npy.*.tmp.npy"]),
+    # in the third tile: the staged D and W values and the mask's temporary (two tiles) written.
+    "mid-write of the table": dict(owner="facetsynth.partial_ndf", name="fit", call=3,
+                                   left=["partial_ndf/.ndf.partial/ndf.npy", "partial_ndf/.ndf.partial/.mask.npy.*.tmp.npy"]),
+    # every file of the table staged (mask, offsets, table.json renamed into place), the folder not published.
+    "before the table is published": dict(owner="os", name="replace", call=4,
+                                          left=["partial_ndf/.ndf.partial/table.json"]),
 }
 
 

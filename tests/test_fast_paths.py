@@ -2,11 +2,13 @@
 computations they replace (scipy's map_coordinates, the dense eq. 5 integral, numpy's lstsq, Delaunay
 barycentric weights, the frame-at-a-time separation)."""
 
+import json
+
 import numpy as np
 import pytest
 from scipy.ndimage import map_coordinates
 
-from facetsynth import cluster, partial_ndf as pndf
+from facetsynth import cluster, partial_ndf as pndf, tables
 from facetsynth.coverage import LightFootprint
 from facetsynth.grid import DirectionGrid
 from facetsynth.lightplane import LightTriangulation
@@ -129,12 +131,13 @@ def test_tiles_on_threads_equal_one_thread(tmp_path):
     runs = []
     for threads in (1, 2, 2, 2):
         out = tmp_path / f"run{len(runs)}"
-        resample.run(geometry, tmp_path / "spec.npy", tmp_path / "valid.npy", out / "slice.npy", out / "cover.npy",
+        resample.run(geometry, tmp_path / "spec.npy", tmp_path / "valid.npy", out / "slice",
                      out / "colour.npy", out / "grid.json", out / "r.json", threads=threads)
-        partial_ndf.run(geometry, out / "slice.npy", out / "cover.npy", out / "grid.json", out / "ndf.npy",
-                        out / "w.npy", out / "p.json", partial_ndf.Settings(per_point_view=True), threads=threads)
-        runs.append([np.load(out / f) for f in ("slice.npy", "cover.npy", "colour.npy", "ndf.npy", "w.npy")])
-    assert runs[0][0].shape[0] == 1024 and runs[0][3].any()
+        partial_ndf.run(geometry, out / "slice", out / "grid.json", out / "ndf", out / "p.json",
+                        partial_ndf.Settings(per_point_view=True), threads=threads)
+        runs.append([tables.load(out / "slice"), np.load(out / "colour.npy"), tables.load(out / "ndf", "ndf"),
+                     tables.load(out / "ndf", "confidence")])
+    assert runs[0][0].shape[0] == 1024 and runs[0][2].any()
     for other in runs[1:]:
         for a, b in zip(runs[0], other):
             np.testing.assert_array_equal(a, b)
@@ -158,3 +161,30 @@ def test_one_light_triangulation_shared_by_threads():
         with ThreadPoolExecutor(2) as pool:
             parts = list(pool.map(lambda s: tri.interpolate(values[s], valid[s], points[s], directions)[0], halves))
         np.testing.assert_array_equal(np.concatenate(parts), reference)
+
+
+def test_the_slice_kept_on_its_support_gives_the_partial_ndfs_of_the_whole_slice(tmp_path, monkeypatch):
+    """resample keeps each point's slice only within a cell of the light directions its lights covered
+    (coverage.read_around): every cell eq. 11's bilinear lookups read where W > 0. The partial NDFs fitted
+    from it are those fitted from the whole slice, bit for bit, on a rig whose lights cover a part of the
+    hemisphere."""
+    from facetsynth.plane import PlaneGrid
+    from facetsynth.stages import partial_ndf, resample, separate
+    geometry = write_rectified(tmp_path / "cap", one_material((0.2, 0.3, 0.4), (0.5,) * 3, alpha=(0.15, 0.3)),
+                               PlaneGrid(0.1, 0.1, 16, 16), rig_lights(9, 8))
+    separate.run(geometry, tmp_path / "kd.exr", tmp_path / "spec.npy", tmp_path / "valid.npy", tmp_path / "s.json")
+    fitted = []
+    for name in ("support", "whole"):
+        out = tmp_path / name
+        if name == "whole":
+            monkeypatch.setattr(resample, "read_around", lambda covered: np.ones_like(covered))
+        resample.run(geometry, tmp_path / "spec.npy", tmp_path / "valid.npy", out / "slice", out / "colour.npy",
+                     out / "grid.json", out / "r.json")
+        partial_ndf.run(geometry, out / "slice", out / "grid.json", out / "ndf", out / "p.json",
+                        partial_ndf.Settings(per_point_view=True))
+        fitted.append((tables.load(out / "ndf", "ndf"), tables.load(out / "ndf", "confidence"),
+                       json.loads((out / "slice/table.json").read_text())["stored_fraction"]))
+    (d, w, kept), (d_all, w_all, everything) = fitted
+    assert everything == 1.0 and 0.2 < kept < 0.9 and (w > 0).mean() > 0.1
+    np.testing.assert_array_equal(d, d_all)
+    np.testing.assert_array_equal(w, w_all)

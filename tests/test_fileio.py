@@ -174,3 +174,16 @@ def test_npy_writer_writes_np_saves_bytes_and_npy_rows_reads_them(tmp_path):
     with pytest.raises(ValueError, match="does not fit"):
         with npy_writer(tmp_path / "wide.npy", np.float32, a.shape) as write:
             write(np.zeros((2, 4, 7), np.float32))
+
+
+def test_half_float_tensors_saturate_instead_of_overflowing():
+    """The per-point tensors between stages are half floats (issue 14's disk budget): rounding within
+    2^-11 of the value, values beyond the half range saturated at +-65504 (never Inf), NaN kept for the
+    reader's checks to see."""
+    from facetsynth.fileio import as_half
+    values = np.array([0.0, 1e-3, 0.1234567, 3.14159, 1234.567, 65504.0, 7e4, -1e9, 1e300])
+    half = as_half(values)
+    assert half.dtype == np.float16 and np.isfinite(half).all()
+    assert np.allclose(half[:5], values[:5], rtol=2.0 ** -11, atol=0)
+    assert half[5] == half[6] == 65504.0 and half[7] == -65504.0 and half[8] == 65504.0
+    assert np.isnan(as_half(np.array([np.nan]))).all()

@@ -11,6 +11,7 @@ import shutil
 import numpy as np
 import pytest
 
+from facetsynth.tables import SupportTable
 from test_workflow import NOISE_FREE, make_workdir, metrics, snakemake
 
 SCENES = ("wallpaper", "satin", "brushed")
@@ -80,7 +81,7 @@ def test_output_contract(scenes_run, sample):
     np.testing.assert_allclose(wts[visible].sum(axis=1), 1.0, atol=1e-5)
     assert ndf.shape == (len(reps), grid["n_theta"], grid["n_phi"]) and ndf.dtype == np.float32
     assert np.isfinite(ndf).all() and (ndf >= 0).all()
-    partial = np.load(res / "partial_ndf/ndf.npy", mmap_mode="r")[reps]
+    partial = SupportTable(res / "partial_ndf/ndf").rows("ndf")[reps]
     assert np.median(ndf.max(axis=(1, 2)) / partial.max(axis=(1, 2))) == pytest.approx(1.0, rel=0.2)  # same scale
 
 

@@ -12,7 +12,7 @@ from facetsynth.scene import Scene
 from facetsynth.stages import validate
 from facetsynth.svbrdf import tabulate_truth
 from facetsynth.virtual_rig import VirtualRig
-from facetsynth.ward import WardSVBRDF, fit_point, ward_specular
+from facetsynth.ward import WardSVBRDF, fit_points, ward_specular
 
 from test_predict import SCENE
 
@@ -24,7 +24,8 @@ def test_ward_lm_recovers_an_anisotropic_ward_lobe():
     wi /= np.linalg.norm(wi, axis=1, keepdims=True)
     wo = np.broadcast_to([0.0, -0.866, 0.5], wi.shape)
     truth = 0.7 * ward_specular(wi, wo, 0.12, 0.3, 1.1)
-    fit = fit_point(truth, wi, wo)
+    fit = fit_points(truth[None], wi[None], wo[None])
+    fit = type(fit)(*(f[0] for f in fit))               # the one point
     assert fit.ok
     assert fit.ks == pytest.approx(0.7, rel=1e-3)
     # (alpha_x, alpha_y, phi) and (alpha_y, alpha_x, phi + pi/2) are the same lobe; LM may land on either

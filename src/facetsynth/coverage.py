@@ -45,6 +45,23 @@ class LightFootprint:
         return _coverage(self.distance, self.origin, self.pitch, self.height, self.spacing,
                          np.asarray(points, float), np.asarray(directions, float))
 
+    def on_grid(self, points: np.ndarray, grid) -> np.ndarray:
+        """Coverage of the directions of a :class:`facetsynth.grid.DirectionGrid` seen from points (P, 3):
+        (P, T, F)."""
+        return self.coverage(points, grid.directions.reshape(-1, 3)).reshape((-1,) + grid.shape)
+
+
+def read_around(covered: np.ndarray) -> np.ndarray:
+    """Cells (P, T, F) bool within one cell of a ``covered`` one (phi periodic, theta clamped): every cell a
+    bilinear lookup (:func:`facetsynth.grid.bilinear_at`) with a covered corner of nonzero weight reads. A
+    slice is kept there (:mod:`facetsynth.tables`): eq. 11 reads it only where W, which carries the
+    coverage, is positive."""
+    around = covered | np.roll(covered, 1, axis=-1) | np.roll(covered, -1, axis=-1)
+    out = around.copy()
+    out[:, 1:] |= around[:, :-1]
+    out[:, :-1] |= around[:, 1:]
+    return out
+
 
 @numba.njit(cache=True, nogil=True)
 def _coverage(distance: np.ndarray, origin: np.ndarray, pitch: float, height: float, spacing: float,

@@ -39,8 +39,7 @@ if SCATTER_TILES == 1:
         input:
             **RESAMPLE_INPUTS,
         output:
-            slice="results/{sample}/resample/specular_slice.npy",
-            coverage="results/{sample}/resample/coverage.npy",
+            slice=directory("results/{sample}/resample/slice"),
             colour="results/{sample}/resample/specular_colour.npy",
             grid="results/{sample}/resample/grid.json",
             metrics="results/{sample}/resample/metrics.json",
@@ -62,8 +61,7 @@ else:   # scatter.tiles > 1: one job per part of the points (whole tiles), joine
         input:
             **RESAMPLE_INPUTS,
         output:
-            slice=temp("results/{sample}/resample/parts/{scatteritem}/specular_slice.npy"),
-            coverage=temp("results/{sample}/resample/parts/{scatteritem}/coverage.npy"),
+            slice=temp(directory("results/{sample}/resample/parts/{scatteritem}/slice")),
             record=temp("results/{sample}/resample/parts/{scatteritem}/record.npz"),
         params:
             **RESAMPLE_PARAMS,
@@ -80,12 +78,10 @@ else:   # scatter.tiles > 1: one job per part of the points (whole tiles), joine
     rule resample:
         input:
             **RESAMPLE_INPUTS,
-            slice=gather.tiles("results/{{sample}}/resample/parts/{scatteritem}/specular_slice.npy"),
-            coverage=gather.tiles("results/{{sample}}/resample/parts/{scatteritem}/coverage.npy"),
+            slice=gather.tiles("results/{{sample}}/resample/parts/{scatteritem}/slice"),
             records=gather.tiles("results/{{sample}}/resample/parts/{scatteritem}/record.npz"),
         output:
-            slice="results/{sample}/resample/specular_slice.npy",
-            coverage="results/{sample}/resample/coverage.npy",
+            slice=directory("results/{sample}/resample/slice"),
             colour="results/{sample}/resample/specular_colour.npy",
             grid="results/{sample}/resample/grid.json",
             metrics="results/{sample}/resample/metrics.json",
@@ -104,8 +100,7 @@ else:   # scatter.tiles > 1: one job per part of the points (whole tiles), joine
 
 PARTIAL_NDF_INPUTS = {
     "geometry": "results/{sample}/rectify/geometry.json",
-    "slice": "results/{sample}/resample/specular_slice.npy",
-    "coverage": "results/{sample}/resample/coverage.npy",
+    "slice": "results/{sample}/resample/slice",
     "grid": "results/{sample}/resample/grid.json",
 }
 
@@ -116,8 +111,7 @@ if SCATTER_TILES == 1:
         input:
             **PARTIAL_NDF_INPUTS,
         output:
-            ndf="results/{sample}/partial_ndf/ndf.npy",
-            confidence="results/{sample}/partial_ndf/confidence.npy",
+            ndf=directory("results/{sample}/partial_ndf/ndf"),
             metrics="results/{sample}/partial_ndf/metrics.json",
         params:
             **config["partial_ndf"],
@@ -137,8 +131,7 @@ else:   # scatter.tiles > 1: one job per part of the points (whole tiles), joine
         input:
             **PARTIAL_NDF_INPUTS,
         output:
-            ndf=temp("results/{sample}/partial_ndf/parts/{scatteritem}/ndf.npy"),
-            confidence=temp("results/{sample}/partial_ndf/parts/{scatteritem}/confidence.npy"),
+            ndf=temp(directory("results/{sample}/partial_ndf/parts/{scatteritem}/ndf")),
             record=temp("results/{sample}/partial_ndf/parts/{scatteritem}/record.npz"),
         params:
             **config["partial_ndf"],
@@ -156,12 +149,10 @@ else:   # scatter.tiles > 1: one job per part of the points (whole tiles), joine
         input:
             geometry="results/{sample}/rectify/geometry.json",
             grid="results/{sample}/resample/grid.json",
-            ndf=gather.tiles("results/{{sample}}/partial_ndf/parts/{scatteritem}/ndf.npy"),
-            confidence=gather.tiles("results/{{sample}}/partial_ndf/parts/{scatteritem}/confidence.npy"),
+            ndf=gather.tiles("results/{{sample}}/partial_ndf/parts/{scatteritem}/ndf"),
             records=gather.tiles("results/{{sample}}/partial_ndf/parts/{scatteritem}/record.npz"),
         output:
-            ndf="results/{sample}/partial_ndf/ndf.npy",
-            confidence="results/{sample}/partial_ndf/confidence.npy",
+            ndf=directory("results/{sample}/partial_ndf/ndf"),
             metrics="results/{sample}/partial_ndf/metrics.json",
         params:
             **config["partial_ndf"],

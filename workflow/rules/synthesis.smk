@@ -6,8 +6,7 @@
 rule cluster:
     input:
         geometry="results/{sample}/rectify/geometry.json",
-        ndf="results/{sample}/partial_ndf/ndf.npy",
-        confidence="results/{sample}/partial_ndf/confidence.npy",
+        ndf="results/{sample}/partial_ndf/ndf",
         grid="results/{sample}/resample/grid.json",
         specular="results/{sample}/separate/specular.npy",
         valid="results/{sample}/separate/valid.npy",
@@ -37,11 +36,10 @@ rule cluster:
 
 
 def rotation_inputs(wildcards):
-    """The geometry, partial NDFs and confidences of the sample's further rotations (sec. 4)."""
+    """The geometry and partial NDF tables of the sample's further rotations (sec. 4)."""
     rotations = rotations_of(wildcards.sample)
     return {"rotation_geometry": [f"results/{r}/rectify/geometry.json" for r in rotations],
-            "rotation_ndf": [f"results/{r}/partial_ndf/ndf.npy" for r in rotations],
-            "rotation_confidence": [f"results/{r}/partial_ndf/confidence.npy" for r in rotations]}
+            "rotation_ndf": [f"results/{r}/partial_ndf/ndf" for r in rotations]}
 
 
 rule synthesize:
@@ -49,8 +47,7 @@ rule synthesize:
         unpack(rotation_inputs),
         geometry="results/{sample}/rectify/geometry.json",
         kd="results/{sample}/separate/kd.exr",
-        ndf="results/{sample}/partial_ndf/ndf.npy",
-        confidence="results/{sample}/partial_ndf/confidence.npy",
+        ndf="results/{sample}/partial_ndf/ndf",
         grid="results/{sample}/resample/grid.json",
         representatives="results/{sample}/cluster/representatives.npy",
         rep_ndf="results/{sample}/cluster/representative_ndf.npy",

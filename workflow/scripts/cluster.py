@@ -3,7 +3,7 @@ from facetsynth.stages.runner import run_stage
 
 p = snakemake.params
 run_stage(snakemake, cluster.run, geometry=snakemake.input.geometry, ndf=snakemake.input.ndf,
-          confidence=snakemake.input.confidence, grid_path=snakemake.input.grid,
+          grid_path=snakemake.input.grid,
           specular=snakemake.input.specular, valid=snakemake.input.valid, kd=snakemake.input.kd,
           labels_out=snakemake.output.labels, representatives_out=snakemake.output.representatives,
           neighbours_out=snakemake.output.neighbours, weights_out=snakemake.output.weights,

@@ -6,15 +6,11 @@ settings = partial_ndf.Settings.from_params(snakemake.params)
 i, o = snakemake.input, snakemake.output
 if "record" in o.keys():        # one scatter part ({scatteritem} = "k-of-n")
     part, parts = scatter_item(snakemake.wildcards.scatteritem)
-    run_stage(snakemake, partial_ndf.run_part, geometry=i.geometry, slice_path=i.slice, coverage_path=i.coverage,
-              grid_path=i.grid, part=part, parts=parts, ndf_out=o.ndf, confidence_out=o.confidence,
-              record_out=o.record, settings=settings,
-              threads=snakemake.threads)
+    run_stage(snakemake, partial_ndf.run_part, geometry=i.geometry, slice_path=i.slice, grid_path=i.grid, part=part,
+              parts=parts, ndf_out=o.ndf, record_out=o.record, settings=settings, threads=snakemake.threads)
 elif "records" in i.keys():     # the parts joined
     run_stage(snakemake, partial_ndf.gather, geometry=i.geometry, grid_path=i.grid, ndf_parts=list(i.ndf),
-              confidence_parts=list(i.confidence), records=list(i.records), ndf_out=o.ndf,
-              confidence_out=o.confidence, metrics_out=o.metrics, settings=settings)
+              records=list(i.records), ndf_out=o.ndf, metrics_out=o.metrics, settings=settings)
 else:
-    run_stage(snakemake, partial_ndf.run, geometry=i.geometry, slice_path=i.slice, coverage_path=i.coverage,
-              grid_path=i.grid, ndf_out=o.ndf, confidence_out=o.confidence, metrics_out=o.metrics, settings=settings,
-              threads=snakemake.threads)
+    run_stage(snakemake, partial_ndf.run, geometry=i.geometry, slice_path=i.slice, grid_path=i.grid, ndf_out=o.ndf,
+              metrics_out=o.metrics, settings=settings, threads=snakemake.threads)

@@ -3,7 +3,7 @@ from facetsynth.stages.runner import run_stage
 
 p = snakemake.params
 run_stage(snakemake, synthesize.run, geometry=snakemake.input.geometry, ndf=snakemake.input.ndf,
-          confidence=snakemake.input.confidence, grid_path=snakemake.input.grid,
+          grid_path=snakemake.input.grid,
           representatives=snakemake.input.representatives,
           rep_ndf=snakemake.input.rep_ndf, rep_confidence=snakemake.input.rep_confidence,
           rotation=snakemake.input.rotation, neighbours=snakemake.input.neighbours,
@@ -18,5 +18,4 @@ run_stage(snakemake, synthesize.run, geometry=snakemake.input.geometry, ndf=snak
           fill_overlap=p.fill_overlap, extend_rings=p.extend_rings,
           isotropic_threshold=p.isotropic_threshold, kd=snakemake.input.kd,
           material_tolerance=p.material_tolerance, seed=p.seed,
-          rotations=list(zip(snakemake.input.rotation_geometry, snakemake.input.rotation_ndf,
-                             snakemake.input.rotation_confidence)))
+          rotations=list(zip(snakemake.input.rotation_geometry, snakemake.input.rotation_ndf)))

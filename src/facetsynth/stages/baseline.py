@@ -1,4 +1,8 @@
-"""Stage ``baseline_ward``: per-point anisotropic Ward fitted by LM to the rectified data (paper 002 Fig. 10)."""
+"""Stage ``baseline_ward``: per-point anisotropic Ward fitted by LM to the rectified data (paper 002 Fig. 10).
+
+Each point is fitted independently; :func:`facetsynth.ward.fit_points` fits a tile of them at once. The
+config knob ``baseline.max_nfev`` (argument ``max_nfev``) caps the LM iterations (trial steps) per start and
+point; it kept its name from the scipy fit it replaced, where it capped function evaluations."""
 
 from __future__ import annotations
 
@@ -11,7 +15,7 @@ from tqdm import tqdm
 
 from ..fileio import atomic_path, read_exr, write_json
 from ..render import light_geometry
-from ..ward import WardSVBRDF, fit_point
+from ..ward import WardSVBRDF, fit_points
 from .common import TILE_POINTS, RectifiedCapture, part_points, part_records
 
 log = logging.getLogger(__name__)
@@ -48,7 +52,9 @@ def gather(geometry: str | Path, kd_path: str | Path, colour: str | Path, specul
 
 
 def _fit_points(capture: RectifiedCapture, specular, valid, points: slice, max_nfev: int) -> dict:
-    """LM fits of the visible points among ``points``; defaults (ks 0, alpha 0.3) elsewhere."""
+    """LM fits of the visible points among ``points``, a tile of TILE_POINTS at a time (tiles counted from
+    ``points.start``, so a scatter part's tiles are those of the unsplit run); defaults (ks 0, alpha 0.3)
+    elsewhere. A point's samples are those valid, finite and lit from above (i.z > 0)."""
     spec = np.load(specular, mmap_mode="r")
     ok = np.load(valid, mmap_mode="r")
     view = capture.view_directions(True)
@@ -56,15 +62,20 @@ def _fit_points(capture: RectifiedCapture, specular, valid, points: slice, max_n
     out = {"ks": np.zeros(n), "alpha_x": np.full(n, 0.3), "alpha_y": np.full(n, 0.3), "phi": np.zeros(n),
            "failed": np.zeros(n, bool)}
     start = time.perf_counter()
-    visible = np.flatnonzero(capture.visible[points]) + points.start
-    for p in tqdm(visible, desc="baseline_ward: LM per point", unit="point", mininterval=5.0):
-        wi, _ = light_geometry(capture.points[p][None], capture.light_positions)
-        use = np.asarray(ok[p], bool) & (wi[:, 2] > 0)
-        rho_s = np.asarray(spec[p], float)[use].mean(axis=-1)
-        fit = fit_point(rho_s, wi[use], np.broadcast_to(view[p], (int(use.sum()), 3)), max_nfev=max_nfev)
+    for t0 in tqdm(range(points.start, points.stop, TILE_POINTS), desc="baseline_ward: LM per tile", unit="tile",
+                   mininterval=5.0):
+        tile = slice(t0, min(t0 + TILE_POINTS, points.stop))
+        visible = np.flatnonzero(capture.visible[tile])
+        if visible.size == 0:
+            continue
+        p = visible + t0
+        wi, _ = light_geometry(capture.points[p][:, None], capture.light_positions)       # (T, F, 3)
+        rho_s = np.asarray(spec[tile], float)[visible].mean(axis=-1)                     # (T, F)
+        use = np.asarray(ok[tile], bool)[visible] & (wi[..., 2] > 0) & np.isfinite(rho_s)
+        fit = fit_points(rho_s, wi, view[p][:, None], use, max_iterations=max_nfev)
         q = p - points.start
         out["ks"][q], out["alpha_x"][q], out["alpha_y"][q], out["phi"][q] = fit.ks, fit.alpha_x, fit.alpha_y, fit.phi
-        out["failed"][q] = not fit.ok
+        out["failed"][q] = ~fit.ok
     out["seconds"] = time.perf_counter() - start
     return out
 
@@ -77,7 +88,8 @@ def _write(capture: RectifiedCapture, kd_path, colour, fitted: dict, specular, m
     ks, ax, ay, phi = fitted["ks"], fitted["alpha_x"], fitted["alpha_y"], fitted["phi"]
     failed = int(np.sum(fitted["failed"]))
     WardSVBRDF(capture.grid, kd, ks[:, None] * col, ax, ay, phi,
-               info={"fit": "Levenberg-Marquardt per point (scipy least_squares, method lm)",
+               info={"fit": "Levenberg-Marquardt per point (facetsynth.ward.fit_points: batched over tiles, "
+                            "analytic Jacobian, two starts)",
                      "source": str(specular)}).save(model_out)
     write_json(metrics_out, {"points": n, "fitted_points": int(capture.visible.sum()),
                              "points_not_converged": failed, "fit_seconds": float(fitted["seconds"]),

@@ -20,6 +20,7 @@ from tqdm import tqdm
 from .. import cluster
 from .. import partial_ndf as pndf
 from ..fileio import NpyRows, read_exr, read_json, write_json, write_npy
+from ..tables import SupportTable
 from ..frames import imap
 from ..grid import DirectionGrid
 from ..partial_ndf import relative_l2
@@ -33,7 +34,7 @@ TURN_SPREAD = 0.5    # representative lowers their eq. 15 distance by 20 % (medi
                      # more than half a sector (standard deviation): then each point is that representative turned
 
 
-def run(geometry: str | Path, ndf: str | Path, confidence: str | Path, grid_path: str | Path,
+def run(geometry: str | Path, ndf: str | Path, grid_path: str | Path,
         specular: str | Path | None, valid: str | Path | None,
         labels_out: str | Path, representatives_out: str | Path, neighbours_out: str | Path,
         weights_out: str | Path, rep_ndf_out: str | Path, rep_confidence_out: str | Path, rotation_out: str | Path,
@@ -67,7 +68,8 @@ def run(geometry: str | Path, ndf: str | Path, confidence: str | Path, grid_path
     t0 = time.perf_counter()
     capture = RectifiedCapture.load(geometry)
     grid = DirectionGrid.from_dict(read_json(grid_path))
-    d_all, w_all = NpyRows(ndf), NpyRows(confidence)
+    table = SupportTable(ndf)         # partial_ndf's D and W
+    d_all, w_all = table.rows("ndf"), table.rows("confidence")
     n = capture.n_points
     visible = np.flatnonzero(capture.visible)
     if visible.size == 0:

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..fileio import NpyRows, npy_writer, read_json
+from ..fileio import read_json
 from ..plane import PlaneGrid
 from ..scene import MaterialMaps, Scene
 
@@ -93,19 +93,6 @@ def part_records(records: list) -> tuple[np.ndarray, dict]:
                     else np.sum([loaded[k][key] for k in order]))
               for key in loaded[0] if key != "start"} if loaded else {}
     return order, joined
-
-
-def join_parts(parts: list, out: str | Path, n_points: int) -> None:
-    """Scatter parts' (n_k, ...) .npy tensors, given in point order, streamed into one (n_points, ...) .npy
-    file: the unsplit run's, bit for bit."""
-    blocks = [NpyRows(part) for part in parts]
-    held = sum(len(block) for block in blocks)
-    if held != n_points:
-        raise ValueError(f"{out}: the scatter parts hold {held} points, the capture {n_points}")
-    with npy_writer(out, blocks[0].dtype, (n_points,) + blocks[0].shape[1:]) as write:
-        for block in blocks:
-            for tile in tiles(len(block)):
-                write(block[tile])
 
 
 def flag_degenerate(metrics: dict, reason: str, log: logging.Logger) -> None:

@@ -9,10 +9,12 @@ from pathlib import Path
 import numpy as np
 
 from .. import partial_ndf as pndf
-from ..fileio import NpyRows, atomic_path, npy_writer, read_json, write_json
+from ..coverage import LightFootprint
+from ..fileio import atomic_path, read_json, write_json
 from ..frames import imap
 from ..grid import DirectionGrid
-from .common import TILE_POINTS, RectifiedCapture, join_parts, part_points, part_records, tiles
+from ..tables import SupportTable, join_tables, support_writer
+from .common import TILE_POINTS, RectifiedCapture, part_points, part_records, tiles
 
 log = logging.getLogger(__name__)
 
@@ -38,10 +40,20 @@ class Settings:
                         self.max_iterations)
 
 
-def run(geometry: str | Path, slice_path: str | Path, coverage_path: str | Path, grid_path: str | Path,
-        ndf_out: str | Path, confidence_out: str | Path, metrics_out: str | Path,
-        settings: Settings = Settings(), threads: int = 1) -> None:
+def light_coverage(capture: RectifiedCapture, grid: DirectionGrid):
+    """``coverage(points)``: (len, T, F) how well the capture's lights sampled each grid direction from
+    each of ``points`` (capture point indices), as W of eq. 12 needs it (:class:`LightFootprint`)."""
+    footprint = LightFootprint.from_lights(capture.light_positions)
+    log.info("lights: %d, spacing %.1f mm, plane z = %.1f mm", len(capture.light_positions),
+             1e3 * footprint.spacing, 1e3 * footprint.height)
+    return lambda points: footprint.on_grid(capture.points[points], grid)
+
+
+def run(geometry: str | Path, slice_path: str | Path, grid_path: str | Path, ndf_out: str | Path,
+        metrics_out: str | Path, settings: Settings = Settings(), threads: int = 1) -> None:
     """Fit every point's partial NDF, in tiles of points over memory-mapped tensors, on ``threads`` threads.
+    ``ndf_out``: a :mod:`facetsynth.tables` support table of D (channel ``ndf``) and W (``confidence``) on
+    each point's W > 0.
 
     For virtual captures, accuracy is measured against
     :func:`facetsynth.partial_ndf.recoverable_ndf` over cells with W >= 0.5,
@@ -51,13 +63,12 @@ def run(geometry: str | Path, slice_path: str | Path, coverage_path: str | Path,
     """
     capture = RectifiedCapture.load(geometry)
     grid = DirectionGrid.from_dict(read_json(grid_path))
-    fitted = _fit_points(capture, grid, slice_path, coverage_path, slice(0, capture.n_points), ndf_out,
-                         confidence_out, settings, threads)
+    fitted = _fit_points(capture, grid, slice_path, slice(0, capture.n_points), ndf_out, settings, threads)
     write_json(metrics_out, _metrics(capture, grid, fitted, settings))
 
 
-def run_part(geometry: str | Path, slice_path: str | Path, coverage_path: str | Path, grid_path: str | Path,
-             part: int, parts: int, ndf_out: str | Path, confidence_out: str | Path, record_out: str | Path,
+def run_part(geometry: str | Path, slice_path: str | Path, grid_path: str | Path,
+             part: int, parts: int, ndf_out: str | Path, record_out: str | Path,
              settings: Settings = Settings(), threads: int = 1) -> None:
     """One scatter part (``scatter.tiles`` > 1): the partial NDFs of :func:`part_points` only, and a record
     (.npz: the points' iterations, convergence and scored errors) that :func:`gather` turns into the
@@ -65,30 +76,27 @@ def run_part(geometry: str | Path, slice_path: str | Path, coverage_path: str | 
     capture = RectifiedCapture.load(geometry)
     grid = DirectionGrid.from_dict(read_json(grid_path))
     points = part_points(capture.n_points, part, parts, TILE_POINTS)
-    fitted = _fit_points(capture, grid, slice_path, coverage_path, points, ndf_out, confidence_out, settings,
-                         threads)
+    fitted = _fit_points(capture, grid, slice_path, points, ndf_out, settings, threads)
     with atomic_path(record_out, suffix=".npz") as tmp:
         np.savez(tmp, start=points.start, **fitted)
 
 
-def gather(geometry: str | Path, grid_path: str | Path, ndf_parts: list[str | Path],
-           confidence_parts: list[str | Path], records: list[str | Path], ndf_out: str | Path,
-           confidence_out: str | Path, metrics_out: str | Path, settings: Settings = Settings()) -> None:
+def gather(geometry: str | Path, grid_path: str | Path, ndf_parts: list[str | Path], records: list[str | Path],
+           ndf_out: str | Path, metrics_out: str | Path, settings: Settings = Settings()) -> None:
     """The scatter parts joined into the unsplit outputs (streamed part by part) and the unsplit metrics."""
     capture = RectifiedCapture.load(geometry)
     grid = DirectionGrid.from_dict(read_json(grid_path))
     order, fitted = part_records(records)
-    for parts, out in ((ndf_parts, ndf_out), (confidence_parts, confidence_out)):
-        join_parts([parts[k] for k in order], out, capture.n_points)
+    join_tables([ndf_parts[k] for k in order], ndf_out, capture.n_points)
     write_json(metrics_out, _metrics(capture, grid, fitted, settings))
 
 
-def _fit_points(capture: RectifiedCapture, grid: DirectionGrid, slice_path, coverage_path, points: slice,
-                ndf_out, confidence_out, settings: Settings, threads: int = 1) -> dict:
-    """Fit the partial NDFs of ``points`` (a slice of the capture's points, whole tiles) into (len, T, F)
-    float32 files, tiles on ``threads`` threads; returns the points' iterations, convergence and the scored
-    points' errors."""
-    table, cover = NpyRows(slice_path), NpyRows(coverage_path)
+def _fit_points(capture: RectifiedCapture, grid: DirectionGrid, slice_path, points: slice, ndf_out,
+                settings: Settings, threads: int = 1) -> dict:
+    """Fit the partial NDFs of ``points`` (a slice of the capture's points, whole tiles) into a (len, T, F)
+    support table, tiles on ``threads`` threads; returns the points' iterations, convergence and the
+    scored points' errors."""
+    table, coverage = SupportTable(slice_path).rows("values"), light_coverage(capture, grid)
     truth = capture.truth()
     scored = scored_points(capture, truth)
     n = points.stop - points.start
@@ -99,14 +107,12 @@ def _fit_points(capture: RectifiedCapture, grid: DirectionGrid, slice_path, cove
 
     def fit_tile(local: slice) -> tuple[slice, slice, pndf.PartialNDF]:
         tile = slice(points.start + local.start, points.start + local.stop)
-        return local, tile, settings.fit(np.asarray(table[tile], float), np.asarray(cover[tile], float),
-                                         views[tile], grid)
+        return local, tile, settings.fit(np.asarray(table[tile], float), coverage(tile), views[tile], grid)
 
-    with npy_writer(ndf_out, np.float32, shape) as write_ndf, npy_writer(confidence_out, np.float32, shape) as write_w:
+    with support_writer(ndf_out, shape, ("ndf", "confidence")) as write:
         for local, tile, fit in imap(fit_tile, list(tiles(n, TILE_POINTS)), threads, "partial_ndf", unit="tile"):
             view = views[tile]
-            write_ndf(fit.ndf)
-            write_w(fit.confidence)
+            write(fit.confidence > 0, ndf=fit.ndf, confidence=fit.confidence)
             iterations[local], converged[local] = fit.iterations, fit.converged
             pick = scored[tile]
             if pick.any():
@@ -145,7 +151,7 @@ VARIANTS = {"constrained": (True, "constrained"), "unconstrained": (True, "uncon
             "clipped": (True, "clipped"), "centre_view": (False, "constrained")}
 
 
-def variant_errors(geometry: str | Path, slice_path: str | Path, coverage_path: str | Path, grid_path: str | Path,
+def variant_errors(geometry: str | Path, slice_path: str | Path, grid_path: str | Path,
                    variants: dict[str, tuple[bool, bool | str]] = VARIANTS, grazing_deg: float = 80.0,
                    tol: float = 1e-3, max_iter: int = 30) -> dict[str, float | None]:
     """Median relative L2 error of each variant (per_point_view, shadowing method) on the scored points of a
@@ -159,8 +165,8 @@ def variant_errors(geometry: str | Path, slice_path: str | Path, coverage_path: 
     index = np.flatnonzero(scored_points(capture, truth))
     if index.size == 0:
         return {name: None for name in variants}
-    s = np.asarray(np.load(slice_path, mmap_mode="r")[index], float)
-    c = np.asarray(np.load(coverage_path, mmap_mode="r")[index], float)
+    s = np.asarray(SupportTable(slice_path).rows("values")[index], float)
+    c = light_coverage(capture, grid)(index)
     maps = truth.take(index)
     result = {}
     for name, (per_point, constrain) in variants.items():

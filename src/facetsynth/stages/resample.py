@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..coverage import LightFootprint
-from ..fileio import NpyRows, atomic_path, npy_writer, write_json, write_npy
+from ..coverage import LightFootprint, read_around
+from ..fileio import NpyRows, atomic_path, write_json, write_npy
 from ..frames import imap
 from ..grid import DirectionGrid
 from ..microfacet import half_vector
@@ -27,7 +27,8 @@ from ..lightplane import LightTriangulation
 from ..pushpull import push_pull
 from ..render import light_geometry
 from ..sharpness import grid_resolution, lobe_widths
-from .common import TILE_POINTS, RectifiedCapture, join_parts, part_points, part_records, tiles
+from ..tables import join_tables, support_writer
+from .common import TILE_POINTS, RectifiedCapture, part_points, part_records, tiles
 
 log = logging.getLogger(__name__)
 
@@ -82,58 +83,57 @@ class Settings:
 
 
 def run(geometry: str | Path, specular: str | Path, valid: str | Path, slice_out: str | Path,
-        coverage_out: str | Path, colour_out: str | Path, grid_out: str | Path, metrics_out: str | Path,
+        colour_out: str | Path, grid_out: str | Path, metrics_out: str | Path,
         settings: Settings = Settings(), threads: int = 1) -> None:
-    """Writes, per point: the specular slice rho~_s(i) on the grid (P, T, F) float32
-    (channel mean), its light coverage (P, T, F) float16 and the specular
-    colour (P, 3) (channel ratios, mean 1), the grid definition (JSON) and the
-    metrics (the measured lobe widths and the grid they chose)."""
+    """Writes, per point: the specular slice rho~_s(i) on the grid (P, T, F) (channel mean; a
+    :mod:`facetsynth.tables` support table, kept within a cell of the directions the lights covered,
+    where eq. 11 reads it) and the specular colour (P, 3) (channel ratios, mean 1), the grid
+    definition (JSON) and the metrics (the measured lobe widths and the grid they chose).
+    The coverage itself (in W, eq. 12) is geometry: :class:`facetsynth.coverage.LightFootprint`
+    gives it where it is used."""
     capture = RectifiedCapture.load(geometry)
     spec, ok = NpyRows(specular), NpyRows(valid)
     grid, metrics = settings.direction_grid(capture, spec, ok)
     log.info("direction grid %d x %d: %s", grid.n_theta, grid.n_phi, metrics["reason"])
-    colour = _resample_points(capture, grid, spec, ok, slice(0, capture.n_points), slice_out, coverage_out, threads)
+    colour = _resample_points(capture, grid, spec, ok, slice(0, capture.n_points), slice_out, threads)
     write_npy(colour_out, colour.astype(np.float32))
     write_json(grid_out, grid.to_dict())
     write_json(metrics_out, metrics)
 
 
 def run_part(geometry: str | Path, specular: str | Path, valid: str | Path, part: int, parts: int,
-             slice_out: str | Path, coverage_out: str | Path, record_out: str | Path,
+             slice_out: str | Path, record_out: str | Path,
              settings: Settings = Settings(), threads: int = 1) -> None:
-    """One scatter part (``scatter.tiles`` > 1): the slices and coverage of :func:`part_points` only, and a
+    """One scatter part (``scatter.tiles`` > 1): the slices of :func:`part_points` only, and a
     record (.npz: the points' specular colour) that :func:`gather` joins."""
     capture = RectifiedCapture.load(geometry)
     spec, ok = NpyRows(specular), NpyRows(valid)
     grid, _ = settings.direction_grid(capture, spec, ok)
     points = part_points(capture.n_points, part, parts, TILE_POINTS)
-    colour = _resample_points(capture, grid, spec, ok, points, slice_out, coverage_out, threads)
+    colour = _resample_points(capture, grid, spec, ok, points, slice_out, threads)
     with atomic_path(record_out, suffix=".npz") as tmp:
         np.savez(tmp, start=points.start, colour=colour)
 
 
-def gather(geometry: str | Path, specular: str | Path, valid: str | Path, slice_parts: list, coverage_parts: list,
-           records: list, slice_out: str | Path, coverage_out: str | Path, colour_out: str | Path,
+def gather(geometry: str | Path, specular: str | Path, valid: str | Path, slice_parts: list,
+           records: list, slice_out: str | Path, colour_out: str | Path,
            grid_out: str | Path, metrics_out: str | Path, settings: Settings = Settings()) -> None:
     """The scatter parts joined into the unsplit outputs, bit for bit."""
     capture = RectifiedCapture.load(geometry)
     grid, metrics = settings.direction_grid(capture, NpyRows(specular), NpyRows(valid))
     order, fitted = part_records(records)
-    join_parts([slice_parts[k] for k in order], slice_out, capture.n_points)
-    join_parts([coverage_parts[k] for k in order], coverage_out, capture.n_points)
+    join_tables([slice_parts[k] for k in order], slice_out, capture.n_points)
     write_npy(colour_out, fitted["colour"].astype(np.float32))
     write_json(grid_out, grid.to_dict())
     write_json(metrics_out, metrics)
 
 
 def _resample_points(capture: RectifiedCapture, grid: DirectionGrid, spec, ok, points: slice, slice_out,
-                     coverage_out, threads: int = 1) -> np.ndarray:
-    """The slices and coverage of ``points`` (whole tiles) into (len, T, F) files, tiles on ``threads``
+                     threads: int = 1) -> np.ndarray:
+    """The slices of ``points`` (whole tiles) into a (len, T, F) support table, tiles on ``threads``
     threads; returns their colour."""
-    footprint = LightFootprint.from_lights(capture.light_positions)
-    log.info("lights: %d, spacing %.1f mm, plane z = %.1f mm", len(capture.light_positions),
-             1e3 * footprint.spacing, 1e3 * footprint.height)
     lights = LightTriangulation.from_lights(capture.light_positions)
+    footprint = LightFootprint.from_lights(capture.light_positions)
     directions = grid.directions.reshape(-1, 3)
     n = points.stop - points.start
     colour = np.ones((n, 3))
@@ -148,10 +148,9 @@ def _resample_points(capture: RectifiedCapture, grid: DirectionGrid, spec, ok, p
         total = np.where(valid[..., None], s, 0.0).sum(axis=1)
         mean = total.mean(axis=1, keepdims=True)
         colour[local] = np.divide(total, mean, out=np.ones_like(total), where=mean > 0)
-        return table, footprint.coverage(xyz, directions).reshape((-1,) + grid.shape)
+        return read_around(footprint.on_grid(xyz, grid) > 0), table
 
-    with npy_writer(slice_out, np.float32, shape) as write_slice, npy_writer(coverage_out, np.float16, shape) as write_cover:
-        for table, cover in imap(resample_tile, list(tiles(n)), threads, "resample", unit="tile"):
-            write_slice(table)
-            write_cover(cover)
+    with support_writer(slice_out, shape) as write_slice:
+        for kept, table in imap(resample_tile, list(tiles(n)), threads, "resample", unit="tile"):
+            write_slice(kept, values=table)
     return colour

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..fileio import atomic_path, read_frame, write_exr, write_json
+from ..fileio import HALF, as_half, atomic_path, read_frame, write_exr, write_json
 from ..frames import imap, map_frames
 from ..render import light_geometry
 from ..separation import brdf_samples, diffuse_minimum, specular_residual
@@ -30,52 +30,22 @@ def run(geometry: str | Path, kd_out: str | Path, specular_out: str | Path, vali
         metrics_out: str | Path, threshold: float = 0.05, threads: int = 1) -> None:
     """Per point and light: rho by eq. 8, kd = pi rho_d by eq. 9, rho~_s = rho - rho_d.
 
-    Writes ``kd`` (EXR on the rectified grid), the specular residual
-    (P, F, 3) float32 and the sample validity (P, F) as memory-mappable .npy
+    Writes ``kd`` (EXR on the rectified grid), the specular residual (P, F, 3) in half floats
+    (:func:`~facetsynth.fileio.as_half`) and the sample validity (P, F) as memory-mappable .npy
     (frames are streamed in; memory does not grow with the sample size).
     Invalid samples: saturated, or a point outside the camera's view. Frames are read on ``threads``
     threads.
     """
     capture = RectifiedCapture.load(geometry)
     n_points, n_frames = capture.n_points, len(capture.frame_files)
-    points = capture.points
     with atomic_path(specular_out, suffix=".npy") as tmp_spec, atomic_path(valid_out, suffix=".npy") as tmp_valid:
-        rho = np.lib.format.open_memmap(tmp_spec, mode="w+", dtype=np.float32, shape=(n_points, n_frames, 3))
-        valid = np.lib.format.open_memmap(tmp_valid, mode="w+", dtype=bool, shape=(n_points, n_frames))
-
-        def frame_samples(q: int) -> tuple[np.ndarray, np.ndarray]:
-            radiance, saturated = read_frame(capture.frame_files[q])
-            sample, _ = brdf_samples(radiance.reshape(-1, 1, 3), points,
-                                     capture.light_positions[q:q + 1], capture.light_intensities[q:q + 1])
-            return sample[:, 0].astype(np.float32), capture.visible & ~saturated.ravel()
-
-        # written FRAME_BLOCK frames at a time as one block of columns: a frame alone would touch every
-        # page of the (P, F, 3) file for 12 bytes a point
-        block = []
-        for q, samples in enumerate(imap(frame_samples, range(n_frames), threads, "separate: eq. 8")):
-            block.append(samples)
-            if len(block) == FRAME_BLOCK or q == n_frames - 1:
-                columns = slice(q + 1 - len(block), q + 1)
-                rho[:, columns] = np.stack([s for s, _ in block], axis=1)
-                valid[:, columns] = np.stack([v for _, v in block], axis=1)
-                block = []
-        kd = np.zeros((n_points, 3))
-        signal = np.zeros(n_points, bool)
-
-        def separate_tile(tile: slice) -> None:
-            rho_tile = np.asarray(rho[tile], float)
-            radiance = _radiance(rho_tile, points[tile], capture)
-            rho_d = diffuse_minimum(rho_tile, radiance, valid[tile], threshold)
-            kd[tile] = np.pi * rho_d
-            rho[tile] = residual = specular_residual(rho_tile, rho_d)
-            peak = np.where(valid[tile], residual.mean(axis=-1), 0.0).max(axis=1, initial=0.0)
-            diffuse = rho_d.mean(axis=-1)
-            signal[tile] = (diffuse > 0) & (peak >= SIGNAL_RATIO * diffuse)
-
-        map_frames(separate_tile, list(tiles(n_points)), threads, "separate: eq. 9", unit="tile")
-        rho.flush()
-        valid.flush()
-        del rho, valid
+        # eq. 8's samples in float32 beside the output (a temporary: swept if this process dies), so that
+        # eq. 9's kd is not rounded to half floats; the residual goes out in half floats
+        scratch = tmp_spec.with_name(tmp_spec.name + ".eq8.npy")
+        try:
+            kd, signal = _separate(capture, threshold, threads, scratch, tmp_spec, tmp_valid)
+        finally:
+            scratch.unlink(missing_ok=True)
     write_exr(kd_out, {"RGB": kd.reshape(capture.grid.rows, capture.grid.cols, 3)},
               {"quantity": "kd (diffuse albedo), paper 002 eq. 9"})
 
@@ -98,6 +68,54 @@ def run(geometry: str | Path, kd_out: str | Path, specular_out: str | Path, vali
         if select.any():
             log.info("kd median relative error %.4f", metrics["kd_median_rel_error"])
     write_json(metrics_out, metrics)
+
+
+def _separate(capture: RectifiedCapture, threshold: float, threads: int, scratch: Path, specular_out: Path,
+              valid_out: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. 8 frame by frame into ``scratch``, then eq. 9 tile by tile into the residual and validity files;
+    returns kd (P, 3) and which points show specular signal (P,)."""
+    n_points, n_frames = capture.n_points, len(capture.frame_files)
+    points = capture.points
+    rho = np.lib.format.open_memmap(scratch, mode="w+", dtype=np.float32, shape=(n_points, n_frames, 3))
+    valid = np.lib.format.open_memmap(valid_out, mode="w+", dtype=bool, shape=(n_points, n_frames))
+
+    def frame_samples(q: int) -> tuple[np.ndarray, np.ndarray]:
+        radiance, saturated = read_frame(capture.frame_files[q])
+        sample, _ = brdf_samples(radiance.reshape(-1, 1, 3), points,
+                                 capture.light_positions[q:q + 1], capture.light_intensities[q:q + 1])
+        return sample[:, 0].astype(np.float32), capture.visible & ~saturated.ravel()
+
+    # written FRAME_BLOCK frames at a time as one block of columns: a frame alone would touch every
+    # page of the (P, F, 3) file for 12 bytes a point
+    block = []
+    for q, samples in enumerate(imap(frame_samples, range(n_frames), threads, "separate: eq. 8")):
+        block.append(samples)
+        if len(block) == FRAME_BLOCK or q == n_frames - 1:
+            columns = slice(q + 1 - len(block), q + 1)
+            rho[:, columns] = np.stack([s for s, _ in block], axis=1)
+            valid[:, columns] = np.stack([v for _, v in block], axis=1)
+            block = []
+    rho.flush()
+    valid.flush()
+    kd = np.zeros((n_points, 3))
+    signal = np.zeros(n_points, bool)
+    residuals = np.lib.format.open_memmap(specular_out, mode="w+", dtype=HALF, shape=(n_points, n_frames, 3))
+
+    def separate_tile(tile: slice) -> None:
+        rho_tile = np.asarray(rho[tile], float)
+        radiance = _radiance(rho_tile, points[tile], capture)
+        rho_d = diffuse_minimum(rho_tile, radiance, valid[tile], threshold)
+        kd[tile] = np.pi * rho_d
+        residual = specular_residual(rho_tile, rho_d)
+        residuals[tile] = as_half(residual)
+        peak = np.where(valid[tile], residual.mean(axis=-1), 0.0).max(axis=1, initial=0.0)
+        diffuse = rho_d.mean(axis=-1)
+        signal[tile] = (diffuse > 0) & (peak >= SIGNAL_RATIO * diffuse)
+
+    map_frames(separate_tile, list(tiles(n_points)), threads, "separate: eq. 9", unit="tile")
+    residuals.flush()
+    del rho, valid, residuals
+    return kd, signal
 
 
 def _radiance(rho: np.ndarray, points: np.ndarray, capture: RectifiedCapture) -> np.ndarray:

@@ -22,7 +22,8 @@ import numpy as np
 from .. import synthesis as syn
 from ..cluster import material_groups
 from ..errors import InputError
-from ..fileio import NpyRows, read_exr, read_json, write_json, write_npy
+from ..fileio import read_exr, read_json, write_json, write_npy
+from ..tables import SupportTable
 from ..grid import DirectionGrid
 from .common import RectifiedCapture, flag_degenerate, tiles
 
@@ -31,7 +32,7 @@ log = logging.getLogger(__name__)
 METRIC_POINTS = 1024   # points scored against the true NDF (every k-th visible point)
 
 
-def run(geometry: str | Path, ndf: str | Path, confidence: str | Path, grid_path: str | Path,
+def run(geometry: str | Path, ndf: str | Path, grid_path: str | Path,
         representatives: str | Path, neighbours: str | Path, weights: str | Path,
         ndf_out: str | Path, confidence_out: str | Path, cosine_out: str | Path, grid_out: str | Path,
         metrics_out: str | Path,
@@ -41,7 +42,7 @@ def run(geometry: str | Path, ndf: str | Path, confidence: str | Path, grid_path
         max_exemplars: int = 4096, ann_neighbors: int = 30, ann_epsilon: float = 0.2, fill_overlap: float | None = None,
         extend_rings: bool = False, isotropic_threshold: float = 0.13, kd: str | Path | None = None,
         material_tolerance: float = 0.25, seed: int = 0,
-        rotations: Sequence[tuple[str | Path, str | Path, str | Path]] = (),
+        rotations: Sequence[tuple[str | Path, str | Path]] = (),
         rep_ndf: str | Path | None = None, rep_confidence: str | Path | None = None,
         rotation: str | Path | None = None) -> None:
     """Complete every representative's NDF; write ndf (R, T, F), its W before fill, the cosine of the
@@ -59,7 +60,7 @@ def run(geometry: str | Path, ndf: str | Path, confidence: str | Path, grid_path
     every representative is isotropic no exemplar set or index is built at
     all (``search_skipped``). ``isotropic_threshold`` 0 turns this off.
 
-    ``rotations``: (geometry, ndf, confidence) of further captures of the same
+    ``rotations``: (geometry, partial NDF table) of further captures of the same
     sample turned on the rig (paper 002 sec. 4, last paragraph): their partial
     NDFs join the exemplar set (``max_exemplars`` shared evenly), so that a
     material whose frame is the same everywhere (brushed metal) finds rotated
@@ -70,16 +71,18 @@ def run(geometry: str | Path, ndf: str | Path, confidence: str | Path, grid_path
     capture = RectifiedCapture.load(geometry)
     grid_dict = read_json(grid_path)
     grid = DirectionGrid.from_dict(grid_dict)
-    d_all, w_all = NpyRows(ndf), NpyRows(confidence)
+    table = SupportTable(ndf)         # partial_ndf's D and W
+    d_all, w_all = table.rows("ndf"), table.rows("confidence")
     reps = np.load(representatives)
     t0 = time.perf_counter()
     view = capture.view_directions(True)
     budget = max(2, max_exemplars // (1 + len(rotations)))
     pool = exemplar_pool(capture, budget)
     sources = [(d_all, w_all, view, pool)]
-    for rot_geometry, rot_ndf, rot_confidence in rotations:
+    for rot_geometry, rot_ndf in rotations:
         rot_capture = RectifiedCapture.load(rot_geometry)
-        rot_d, rot_w = np.load(rot_ndf, mmap_mode="r"), np.load(rot_confidence, mmap_mode="r")
+        rot_table = SupportTable(rot_ndf)
+        rot_d, rot_w = rot_table.rows("ndf"), rot_table.rows("confidence")
         if rot_d.shape[1:] != grid.shape:
             raise InputError(rot_ndf, f"partial NDFs on a {rot_d.shape[1:]} grid; the sample's grid is {grid.shape} "
                                       "(captures of one sample must share the direction grid: fix n_theta_range)")
