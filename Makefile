@@ -9,8 +9,8 @@
 #                and tradeoff.png (about 25 min on 2 cores); restrict with
 #                make bench BENCH_PRESETS=fast BENCH_SCENES=demo, or BENCH_ARGS=--dry-run
 #   make bench-scale - time, memory and disk per stage against the points (64^2 ... 800^2 at 480 frames) and
-#                the frames (120 ... 2600 at 128^2): results/bench/scale.csv and scale.png (about 45 min; each
-#                run's frames and tables are deleted once its figures are recorded: 800^2 writes ~20 GB);
+#                the frames (120 ... 2600 at 128^2): results/bench/scale.csv and scale.png (about 35 min; each
+#                run's frames and tables are deleted once its figures are recorded: 800^2 writes ~22 GB);
 #                restrict with make bench-scale SCALE_ARGS="--points 64 128 256 --frames 120 480"
 
 PYTHON ?= $(shell command -v python3.11 || command -v python3)

@@ -20,12 +20,14 @@ from test_workflow import make_workdir, snakemake
 
 pytestmark = pytest.mark.scenes
 
-# Held-out relative L2 (every view) and the largest within-region median NDF spread at 480 lights, measured
-# 2026-12-02 (views paper / theta30): rgl-quadrants 0.332 / 0.700 (Ward 0.363 / 0.573), spread 0.124;
-# ggx-tiles 0.148 / 0.099 (Ward 0.529 / 0.865), spread 0.100 (before issue 13: 0.141 mean, spread 0.130).
-# Bounds about 15 % above; issue 13's target of 0.10 is not met (docs/decisions.md says why).
-RGL_REL_L2, RGL_SPREAD = 0.80, 0.145
-TILES_REL_L2, TILES_SPREAD = 0.17, 0.115
+# Held-out relative L2 (every view) and the largest within-region median NDF spread at 480 lights, at the
+# default native resolution (168 x 168), measured 2026-12-02 (views paper / theta30): rgl-quadrants 0.312 /
+# 0.690 (Ward 0.368 / 0.797), spread 0.075; ggx-tiles 0.212 / 0.168 (Ward 0.535 / 0.871), spread 0.245.
+# At 64 x 64 the same day: rgl-quadrants 0.332 / 0.700 (Ward 0.363 / 0.573), spread 0.124; ggx-tiles 0.148 /
+# 0.099, spread 0.100: native resolution made the tiles worse (docs/decisions.md, "Native resolution by
+# default"). Bounds about 15 % above; issue 13's target of 0.10 is not met (docs/decisions.md says why).
+RGL_REL_L2, RGL_SPREAD = 0.80, 0.09
+TILES_REL_L2, TILES_SPREAD = 0.245, 0.28
 
 RIG_480 = "rig/descriptions/paper-480.yaml"
 SHEET = (f"uniform\tvirtual\tresources/scenes/uniform.yaml\t\n"
@@ -36,7 +38,7 @@ SHEET = (f"uniform\tvirtual\tresources/scenes/uniform.yaml\t\n"
 
 @pytest.fixture(scope="module")
 def scenes(repo, tmp_path_factory):
-    workdir = make_workdir(repo, tmp_path_factory.mktemp("scenes"), SHEET)
+    workdir = make_workdir(repo, tmp_path_factory.mktemp("scenes"), SHEET, resolution=None)   # native: 168 x 168
     targets = ["results/uniform/params/metrics.json", "results/uniform-480/params/metrics.json",
                "results/rgl-quadrants-480/validate/metrics.json", "results/ggx-tiles-480/validate/metrics.json"]
     done = snakemake(workdir, *targets)
@@ -57,7 +59,7 @@ def test_one_material_gets_few_representatives_and_one_ndf_everywhere(scenes, sa
 
 
 @pytest.mark.parametrize("sample, rel_l2, spread, beats_ward", [
-    ("rgl-quadrants-480", RGL_REL_L2, RGL_SPREAD, False),    # measured BRDFs: Ward is ahead on theta30
+    ("rgl-quadrants-480", RGL_REL_L2, RGL_SPREAD, True),     # measured BRDFs: ahead of Ward at native resolution
     ("ggx-tiles-480", TILES_REL_L2, TILES_SPREAD, True)])
 def test_held_out_views_and_region_spread_at_480_lights(scenes, sample, rel_l2, spread, beats_ward):
     validate = metrics(scenes, sample, "validate")

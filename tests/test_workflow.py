@@ -20,22 +20,22 @@ SNAKEMAKE = [sys.executable, "-m", "snakemake", "--cores", "2"]
 NOISE_FREE = ["--configfile", "config/config.yaml", "noise-free.yaml"]
 
 
-# The workflow tests fit 64 x 64 points, not the default native resolution (the demo camera: 168 x 168, about
-# 7x the per-point work): the unit suite's time budget. Native resolution is what `make run` and the README's
-# native figures use; the rectify tests cover `resolution: auto` itself.
+# The demo and the scene tests fit at the default, native resolution (the demo camera: 168 x 168); the other
+# workflow tests pin 64 x 64 points (a seventh of the per-point work): the unit suite's time budget.
 TEST_RESOLUTION = 64
 
 
-def make_workdir(repo: Path, dest: Path, samples: str) -> Path:
+def make_workdir(repo: Path, dest: Path, samples: str, resolution: int | None = TEST_RESOLUTION) -> Path:
     """A copy of the workflow in ``dest`` with ``samples`` as its sample sheet, rectify pinned to
-    TEST_RESOLUTION."""
+    ``resolution`` (None: the preset's, native)."""
     dest.mkdir(parents=True, exist_ok=True)
     for part in ("Snakefile", "workflow", "config", "resources", "rig"):
         src = repo / part
         (shutil.copytree if src.is_dir() else shutil.copy)(src, dest / part)
-    config = dest / "config/config.yaml"
-    config.write_text(re.sub(r"(?m)^  # resolution: from the preset.*$", f"  resolution: {TEST_RESOLUTION}",
-                             config.read_text(), count=1))
+    if resolution is not None:
+        config = dest / "config/config.yaml"
+        config.write_text(re.sub(r"(?m)^  # resolution: from the preset.*$", f"  resolution: {resolution}",
+                                 config.read_text(), count=1))
     shutil.copy(repo / "tests/data/rig-tiny.yaml", dest / "rig/descriptions/tiny.yaml")
     (dest / "config/samples.tsv").write_text("sample\tsource\tpath\trig\n" + samples)
     return dest
@@ -52,7 +52,8 @@ def metrics(workdir: Path, sample: str, stage: str) -> dict:
 @pytest.fixture(scope="module")
 def demo_run(repo, tmp_path_factory):
     """The default demo sample, noise-free, through the whole default workflow (up to validate, stencil_fit)."""
-    workdir = make_workdir(repo, tmp_path_factory.mktemp("wf"), "demo\tvirtual\tresources/scenes/demo.yaml\t\n")
+    workdir = make_workdir(repo, tmp_path_factory.mktemp("wf"), "demo\tvirtual\tresources/scenes/demo.yaml\t\n",
+                           resolution=None)
     (workdir / "noise-free.yaml").write_text("virtual:\n  noise: false\n")
     done = snakemake(workdir, *NOISE_FREE)
     assert done.returncode == 0, done.stderr[-3000:]
@@ -69,7 +70,8 @@ def test_noise_free_demo_meets_the_accuracy_targets(demo_run):
     for stage in ("capture", "hdr", "rectify", "separate", "resample", "partial_ndf"):   # time and memory
         assert (demo_run / f"results/demo/benchmarks/{stage}.tsv").read_text().startswith("s\th:m:s\tmax_rss")
     geometry = json.loads((demo_run / "results/demo/rectify/geometry.json").read_text())
-    assert len(geometry["frames"]) == 1360 and geometry["grid"]["cols"] == 64
+    assert len(geometry["frames"]) == 1360 and geometry["grid"]["cols"] == 168    # native (issue 14)
+    assert rectify["resolution_rule"] == "auto" and rectify["cols"] == 168
 
 
 def test_noise_free_demo_meets_the_reflectance_targets(demo_run):
@@ -89,7 +91,7 @@ def test_noise_free_demo_meets_the_reflectance_targets(demo_run):
     assert ndf["converged_fraction"] == 1.0
     partial = SupportTable(demo_run / "results/demo/partial_ndf/ndf")
     ndf_table, confidence = partial.rows("ndf")[:], partial.rows("confidence")[:]
-    assert ndf_table.shape == (4096, 32, 128) and np.isfinite(ndf_table).all() and (ndf_table >= 0).all()
+    assert ndf_table.shape == (168 * 168, 32, 128) and np.isfinite(ndf_table).all() and (ndf_table >= 0).all()
     assert np.isfinite(confidence).all() and 0 <= confidence.min() and confidence.max() <= 1
     support = partial.support(slice(None))        # stored where W > 0 (eq. 12) only: W below half floats' 6e-8 is 0
     assert np.mean(support != (confidence > 0)) < 1e-3 and support.mean() < 0.5

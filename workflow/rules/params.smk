@@ -30,6 +30,6 @@ rule params:
         "results/{sample}/benchmarks/params.tsv"
     threads: 2   # tiles of points in parallel
     resources:
-        mem_mb=3500,   # make bench-scale: 3.2 GB peak at 800^2
+        mem_mb=3500,   # make bench-scale: 2.3 GB peak at 800^2 (3.2 GB in an earlier run)
     script:
         "../scripts/params.py"

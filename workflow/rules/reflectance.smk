@@ -20,7 +20,7 @@ rule separate:
         "results/{sample}/benchmarks/separate.tsv"
     threads: 2   # frames read in parallel
     resources:
-        mem_mb=5000,   # make bench-scale: 4.8 GB peak at 800^2 (the memory-mapped (P, F, 3) table)
+        mem_mb=6000,   # make bench-scale: 5.7 GB peak at 800^2 (the memory-mapped (P, F, 3) tables)
     script:
         "../scripts/separate.py"
 

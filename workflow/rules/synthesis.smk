@@ -30,7 +30,7 @@ rule cluster:
         "results/{sample}/benchmarks/cluster.tsv"
     threads: 2   # coarse tables read on threads; k-means and eq. 15 in BLAS
     resources:
-        mem_mb=5000,   # make bench-scale: 4.8 GB peak at 800^2
+        mem_mb=5000,   # make bench-scale: 4.9 GB peak at 800^2
     script:
         "../scripts/cluster.py"
 
