@@ -34,8 +34,10 @@ def make_workdir(repo: Path, dest: Path, samples: str, resolution: int | None = 
         (shutil.copytree if src.is_dir() else shutil.copy)(src, dest / part)
     if resolution is not None:
         config = dest / "config/config.yaml"
-        config.write_text(re.sub(r"(?m)^  # resolution: from the preset.*$", f"  resolution: {resolution}",
-                                 config.read_text(), count=1))
+        text, pinned = re.subn(r"(?m)^  # resolution: from the preset.*$", f"  resolution: {resolution}",
+                               config.read_text(), count=1)
+        assert pinned == 1, f"{config}: no rectify.resolution line to pin"
+        config.write_text(text)
     shutil.copy(repo / "tests/data/rig-tiny.yaml", dest / "rig/descriptions/tiny.yaml")
     (dest / "config/samples.tsv").write_text("sample\tsource\tpath\trig\n" + samples)
     return dest

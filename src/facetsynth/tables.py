@@ -60,15 +60,20 @@ class SupportTable:
     def support(self, index) -> np.ndarray:
         """Which cells of the points ``index`` are stored: bool (n, T, F) (or (T, F) for one point)."""
         rows, scalar = _point_indices(index, len(self))
+        bits = self._bits(rows).reshape((len(rows),) + self.shape[1:])
+        return bits[0] if scalar else bits
+
+    def _bits(self, rows: np.ndarray) -> np.ndarray:
+        """The support of the points ``rows`` (point numbers), bool (n, T F)."""
         mask = np.load(self.folder / "mask.npy", mmap_mode="r")
         bits = np.unpackbits(np.array(mask[_as_run(rows) or rows]), axis=1, count=self.cells).astype(bool)
         del mask
-        bits = bits.reshape((len(rows),) + self.shape[1:])
-        return bits[0] if scalar else bits
+        return bits
 
-    def _dense(self, channel: str, index) -> np.ndarray:
+    def _dense(self, channel: str, index, support: np.ndarray | None = None) -> np.ndarray:
+        """Dense rows of ``channel``; ``support``: the points' support when the caller has read it already."""
         rows, scalar = _point_indices(index, len(self))
-        support = self.support(rows).reshape(len(rows), self.cells)
+        support = self._bits(rows) if support is None else support.reshape(len(rows), self.cells)
         values = np.load(self.folder / f"{channel}.npy", mmap_mode="r")
         out = np.zeros((len(rows), self.cells), values.dtype)
         run = _as_run(rows)
@@ -152,11 +157,17 @@ def join_tables(parts: list[PathLike], out: PathLike, n_points: int, block: int 
         for t in tables:
             for start in range(0, len(t), block):
                 rows = slice(start, min(start + block, len(t)))
-                write(t.support(rows), **{c: t.rows(c)[rows] for c in t.channels})
+                support = t.support(rows)            # read once for every channel
+                write(support, **{c: t._dense(c, rows, support) for c in t.channels})
 
 
 def _point_indices(index, n: int) -> tuple[np.ndarray, bool]:
-    """``index`` (int, slice, integer or bool array) as point numbers, and whether it named one point."""
+    """``index`` (int, slice, integer or bool array) as point numbers, and whether it named one point. A
+    slice or an int (the tile reads) costs nothing per point of the table."""
+    if isinstance(index, slice):
+        return np.arange(*index.indices(n)), False
+    if isinstance(index, (int, np.integer)) and not isinstance(index, bool):
+        return np.array([range(n)[index]]), True
     rows = np.arange(n)[index]
     return np.atleast_1d(rows), np.ndim(rows) == 0
 
