@@ -13,7 +13,7 @@ rule separate:
         valid="results/{sample}/separate/valid.npy",
         metrics="results/{sample}/separate/metrics.json",
     params:
-        threshold=config["separate"]["threshold"],
+        **config["separate"],
     log:
         "results/{sample}/logs/separate.log",
     benchmark:

@@ -3,5 +3,5 @@ from facetsynth.stages.runner import run_stage
 
 run_stage(snakemake, separate.run, geometry=snakemake.input.geometry, kd_out=snakemake.output.kd,
           specular_out=snakemake.output.specular, valid_out=snakemake.output.valid,
-          metrics_out=snakemake.output.metrics, threshold=snakemake.params.threshold,
+          metrics_out=snakemake.output.metrics, settings=separate.Settings.from_params(snakemake.params),
           threads=snakemake.threads)

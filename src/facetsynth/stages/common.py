@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +13,15 @@ from ..plane import PlaneGrid
 from ..scene import MaterialMaps, Scene
 
 TILE_POINTS = 256  # points per tile: bounds the memory of every per-point stage
+
+
+class StageSettings:
+    """Base of a stage's frozen settings dataclass: one field per key of its config section."""
+
+    @classmethod
+    def from_params(cls, params):
+        """From a rule's ``params`` (the config section's keys)."""
+        return cls(**{f.name: getattr(params, f.name) for f in fields(cls)})
 
 
 @dataclass(frozen=True)

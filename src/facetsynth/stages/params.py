@@ -164,8 +164,12 @@ def fit_eta(model: SVBRDF, w18: np.ndarray, samples: dict[str, np.ndarray], mate
     interval of eta (:func:`facetsynth.params.eta_profile`, its independent
     units the material's representatives (``interval_unit`` "representative"),
     points ("point") or samples ("sample")) and ``eta_identifiable`` (width <
-    ``max_eta_interval``, closed inside the bounds); eta itself is decided as
-    before, the interval only reports. Returns (eta (P,), fitted (P,) bool,
+    ``max_eta_interval``, closed inside the bounds). An interval open at both
+    bounds (every eta fits the samples: a material of one representative,
+    such as the points on a black marker) keeps the default: its fitted eta,
+    divided out of the NDF, would scale that representative's ks by up to
+    10 x and, through eq. 18's negative weights, its neighbours' ks too
+    (ggx-tiles at native resolution: ks 0.19 for 0.7). Returns (eta (P,), fitted (P,) bool,
     per-material records, eta per representative (R,), interval per
     representative (R, 2)). ``samples["c_ref"]`` None: eq. 19 as printed (no
     Fresnel factor in the NDF, e.g. an analytic material).
@@ -195,6 +199,11 @@ def fit_eta(model: SVBRDF, w18: np.ndarray, samples: dict[str, np.ndarray], mate
         if interval.reason:
             record["eta_interval_reason"] = interval.reason
         interval_rep[material == m] = interval.lo, interval.hi
+        if res.constrained and interval.open_below and interval.open_above:
+            res = fit.EtaFit(default, False, res.std, res.samples, res.rms,
+                             f"the 95 % interval of eta is all of [{bounds[0]}, {bounds[1]}] ({interval.units} "
+                             "independent unit(s)): the samples do not constrain it")
+            record.update(eta=default, constrained=False, fitted_eta=record["eta"], reason=res.reason)
         if res.constrained:
             halves = []
             for parity in (0, 1):

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +14,7 @@ from ..fileio import atomic_path, read_json, write_json
 from ..frames import imap
 from ..grid import DirectionGrid
 from ..tables import SupportTable, join_tables, support_writer
-from .common import TILE_POINTS, RectifiedCapture, part_points, part_records, tiles
+from .common import TILE_POINTS, RectifiedCapture, StageSettings, part_points, part_records, tiles
 
 log = logging.getLogger(__name__)
 
@@ -22,18 +22,13 @@ METRIC_POINTS = 1024  # points on which the accuracy against the truth is measur
 
 
 @dataclass(frozen=True)
-class Settings:
+class Settings(StageSettings):
     """The stage's knobs: config ``partial_ndf`` (workflow/schemas/config.schema.yaml)."""
     per_point_view: bool = False          # o(x) per point, or the paper's view at the sample centre
     shadowing: bool | str = "constrained"  # S of eq. 5: :func:`facetsynth.partial_ndf.shadowing_method`
     grazing_deg: float = 80.0             # light directions steeper than this are excluded
     tolerance: float = 1e-3               # stop when D changes by less than this (relative)
     max_iterations: int = 30
-
-    @classmethod
-    def from_params(cls, params) -> "Settings":
-        """From a rule's ``params`` (the config section's keys)."""
-        return cls(**{f.name: getattr(params, f.name) for f in fields(cls)})
 
     def fit(self, slice_: np.ndarray, coverage: np.ndarray, view: np.ndarray, grid: DirectionGrid) -> pndf.PartialNDF:
         return pndf.fit(slice_, coverage, view, grid, self.shadowing, self.grazing_deg, self.tolerance,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -10,8 +11,8 @@ import numpy as np
 from ..fileio import HALF, as_half, atomic_path, read_frame, write_exr, write_json
 from ..frames import imap, map_frames
 from ..render import light_geometry
-from ..separation import brdf_samples, diffuse_minimum, specular_residual
-from .common import RectifiedCapture, flag_degenerate, tiles
+from ..separation import brdf_samples, diffuse_level, specular_residual
+from .common import RectifiedCapture, StageSettings, flag_degenerate, tiles
 
 log = logging.getLogger(__name__)
 
@@ -26,9 +27,17 @@ MIN_SIGNAL_FRACTION = 0.01
 FRAME_BLOCK = 32    # frames read before their samples are written
 
 
+@dataclass(frozen=True)
+class Settings(StageSettings):
+    """The stage's knobs: config ``separate`` (workflow/schemas/config.schema.yaml)."""
+    threshold: float = 0.05   # eq. 9: samples darker than threshold x the point's average intensity are left out
+    lowest: float = 0.03      # eq. 9 averages this fraction of the qualifying samples, the darkest (0: the minimum)
+
+
 def run(geometry: str | Path, kd_out: str | Path, specular_out: str | Path, valid_out: str | Path,
-        metrics_out: str | Path, threshold: float = 0.05, threads: int = 1) -> None:
-    """Per point and light: rho by eq. 8, kd = pi rho_d by eq. 9, rho~_s = rho - rho_d.
+        metrics_out: str | Path, settings: Settings = Settings(), threads: int = 1) -> None:
+    """Per point and light: rho by eq. 8, kd = pi rho_d by eq. 9 (:func:`~facetsynth.separation.diffuse_level`),
+    rho~_s = rho - rho_d.
 
     Writes ``kd`` (EXR on the rectified grid), the specular residual (P, F, 3) in half floats
     (:func:`~facetsynth.fileio.as_half`) and the sample validity (P, F) as memory-mappable .npy
@@ -43,15 +52,17 @@ def run(geometry: str | Path, kd_out: str | Path, specular_out: str | Path, vali
         # eq. 9's kd is not rounded to half floats; the residual goes out in half floats
         scratch = tmp_spec.with_name(tmp_spec.name + ".eq8.npy")
         try:
-            kd, signal = _separate(capture, threshold, threads, scratch, tmp_spec, tmp_valid)
+            kd, signal = _separate(capture, settings, threads, scratch, tmp_spec, tmp_valid)
         finally:
             scratch.unlink(missing_ok=True)
     write_exr(kd_out, {"RGB": kd.reshape(capture.grid.rows, capture.grid.cols, 3)},
-              {"quantity": "kd (diffuse albedo), paper 002 eq. 9"})
+              {"quantity": "kd (diffuse albedo), paper 002 eq. 9 (the mean of the lowest "
+                                          f"{100 * settings.lowest:g} % of the qualifying samples)"})
 
     dark = int((kd.sum(axis=1) == 0).sum())
     metrics = {"ground_truth": capture.truth_scene is not None, "points": n_points, "frames": n_frames,
-               "threshold": threshold, "points_without_diffuse_estimate": dark}
+               "threshold": settings.threshold, "lowest": settings.lowest,
+               "points_without_diffuse_estimate": dark}
     lit = capture.visible & (kd.sum(axis=1) > 0)
     metrics["specular_signal_fraction"] = float(signal[lit].mean()) if lit.any() else 0.0
     if metrics["specular_signal_fraction"] < MIN_SIGNAL_FRACTION:
@@ -70,7 +81,7 @@ def run(geometry: str | Path, kd_out: str | Path, specular_out: str | Path, vali
     write_json(metrics_out, metrics)
 
 
-def _separate(capture: RectifiedCapture, threshold: float, threads: int, scratch: Path, specular_out: Path,
+def _separate(capture: RectifiedCapture, settings: Settings, threads: int, scratch: Path, specular_out: Path,
               valid_out: Path) -> tuple[np.ndarray, np.ndarray]:
     """Eq. 8 frame by frame into ``scratch``, then eq. 9 tile by tile into the residual and validity files;
     returns kd (P, 3) and which points show specular signal (P,)."""
@@ -104,7 +115,7 @@ def _separate(capture: RectifiedCapture, threshold: float, threads: int, scratch
     def separate_tile(tile: slice) -> None:
         rho_tile = np.asarray(rho[tile], float)
         radiance = _radiance(rho_tile, points[tile], capture)
-        rho_d = diffuse_minimum(rho_tile, radiance, valid[tile], threshold)
+        rho_d = diffuse_level(rho_tile, radiance, valid[tile], settings.threshold, settings.lowest)
         kd[tile] = np.pi * rho_d
         residual = specular_residual(rho_tile, rho_d)
         residuals[tile] = as_half(residual)
