@@ -22,7 +22,7 @@ BENCH_SCENES ?= demo wallpaper satin paper-256
 BENCH_ARGS ?=
 SCALE_ARGS ?=
 
-.PHONY: run test test-scenes test-cluster bench bench-scale clean
+.PHONY: run test test-scenes test-cluster test-firmware bench bench-scale clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -56,6 +56,11 @@ test-scenes: $(VENV)/.installed-test
 test-cluster: $(VENV)/.installed-cluster
 	bash tests/cluster/install.sh
 	$(BIN)/python -m pytest -q -m cluster
+
+test-firmware: $(VENV)/.installed-test
+	bash rig/firmware/install-toolchain.sh
+	$(MAKE) -C rig/firmware BUILD_DIR=$(CURDIR)/.firmware-build
+	FACETSYNTH_TEST_SIMAVR=1 $(BIN)/python -m pytest -q tests/test_rig_conformance.py
 
 bench: $(VENV)/.installed-bench
 	$(BIN)/python workflow/scripts/bench.py --cores $(CORES) --presets $(BENCH_PRESETS) --scenes $(BENCH_SCENES) $(BENCH_ARGS)

@@ -77,10 +77,10 @@ def test_reset_state(controller: VirtualController) -> None:
 
 def test_identify(controller: VirtualController) -> None:
     reply = controller.handle("ID?")
-    assert reply == "OK FACETSYNTH-RIG 0.1.0-virtual LEDS=40 STEPS=24000 STEPS_PER_MM=80"
+    assert reply == "OK FACETSYNTH-RIG 0.1.0-virtual LEDS=40 STEPS=24000 STEPS_PER_MM=80 PROTO=2"
     parsed = protocol.parse_reply(reply)
     assert isinstance(parsed, OkReply)
-    assert protocol.parse_identity(parsed) == RigInfo("0.1.0-virtual", N_LEDS, MAX_STEPS, STEPS_PER_MM)
+    assert protocol.parse_identity(parsed) == RigInfo("0.1.0-virtual", N_LEDS, MAX_STEPS, STEPS_PER_MM, protocol=2)
 
 
 def test_home_move_position(controller: VirtualController) -> None:
@@ -193,11 +193,60 @@ def test_reply_parsing() -> None:
         protocol.parse_identity(OkReply(("FACETSYNTH-RIG", "1.0", "LEDS=40"), "OK ..."))
 
 
+def test_sequence_helpers() -> None:
+    """Protocol v2: the ``@<n>`` prefix, its echo in replies, ``STOP`` and ``PROTO=``."""
+    assert protocol.split_sequence("@12 MOVE 480") == (12, "MOVE 480")
+    assert protocol.split_sequence("  @0007   LED?") == (7, "  LED?")
+    assert protocol.split_sequence("@9999") == (9999, "")
+    assert protocol.split_sequence("MOVE 480") == (None, "MOVE 480")
+    for bad in ["@", "@ LED?", "@x LED?", "@-1 LED?", "@10000 LED?", "@5LED?", "@1.5"]:
+        with pytest.raises(ValueError):
+            protocol.split_sequence(bad)
+    assert protocol.with_sequence(12, "OK POS 480") == "@12 OK POS 480"
+    assert protocol.with_sequence(None, "OK POS 480") == "OK POS 480"
+    with pytest.raises(ValueError):
+        protocol.with_sequence(10000, "STOP")
+    assert protocol.cmd_stop() == "STOP"
+    assert protocol.split_words("  LED   3 ") == ["LED", "3"]
+    assert protocol.split_words("LED\t3") == ["LED\t3"]  # only spaces separate
+    ok = protocol.parse_reply("@7 OK POS 3\n")
+    assert ok == OkReply(("POS", "3"), "@7 OK POS 3", seq=7)
+    assert protocol.parse_reply("@8 ERR 5 STOPPED") == ErrReply(5, "STOPPED", "@8 ERR 5 STOPPED", seq=8)
+    assert protocol.parse_reply("OK STOP") == OkReply(("STOP",), "OK STOP")
+    with pytest.raises(ProtocolError):
+        protocol.parse_reply("@x OK POS 3")
+    v2 = protocol.parse_reply("OK FACETSYNTH-RIG 1.0.0 LEDS=40 STEPS=24000 STEPS_PER_MM=80 PROTO=2")
+    assert isinstance(v2, OkReply)
+    assert protocol.parse_identity(v2) == RigInfo("1.0.0", 40, 24000, 80.0, protocol=2)
+    info = RigInfo("1.0.0", 40, 24000, 80.0)
+    assert info.protocol == 1 and "PROTO" not in protocol.format_identity(info)  # v1 identity unchanged
+    with pytest.raises(ProtocolError):
+        words = ("FACETSYNTH-RIG", "1", "LEDS=1", "STEPS=1", "STEPS_PER_MM=1", "PROTO=x")
+        protocol.parse_identity(OkReply(words, "OK ..."))
+    assert ErrorCode.STOPPED == 5
+
+
+def test_sequence_replay_in_the_state_machine(homed: VirtualController) -> None:
+    assert homed.handle("@3 MOVE 100") == "@3 OK POS 100"
+    assert homed.handle("MOVE 200") == "OK POS 200"
+    before = homed.state()
+    assert homed.handle("@3 MOVE 100") == "@3 OK POS 100"  # replayed, not executed
+    assert homed.state() == before
+    assert homed.handle("@3 STOP") == "@3 OK STOP"  # STOP always runs
+    state = homed.state()
+    assert (state.homed, state.position, state.lit_led) == (False, 0, None)
+    assert state.revision == before.revision + 1
+    assert homed.handle("@x STOP") == "ERR 2 BAD SEQUENCE NUMBER"
+    homed.reset()
+    assert homed.handle("@3 HOME") == "@3 OK POS 0"  # reset forgot the stored reply
+    assert homed.state().homed
+
+
 # --- the driver against the emulator over a real pty -------------------------
 
 
 def test_identify_over_pty(rig: RigController) -> None:
-    assert rig.identify() == RigInfo("0.1.0-virtual", N_LEDS, MAX_STEPS, STEPS_PER_MM)
+    assert rig.identify() == RigInfo("0.1.0-virtual", N_LEDS, MAX_STEPS, STEPS_PER_MM, protocol=2)
 
 
 def test_mini_scan(rig: RigController, controller: VirtualController) -> None:
@@ -368,6 +417,7 @@ def test_partial_reply_is_a_timeout() -> None:
     [
         (b"HELLO\n", lambda rig: rig.position()),
         (b"OK LED 3\n", lambda rig: rig.position()),  # answer to another command
+        (b"@7 OK POS 3\n", lambda rig: rig.position()),  # a prefix the driver did not send
         (b"OK POS 479\n", lambda rig: rig.move_to(480)),  # did not reach target
         (b"OK LED 2\n", lambda rig: rig.led_on(3)),
         (b"OK LED 2\n", lambda rig: rig.leds_off()),

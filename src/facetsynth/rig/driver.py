@@ -236,6 +236,13 @@ class RigController:
                 command=command,
                 port=self.port_name,
             ) from exc
+        if reply.seq is not None:  # this driver sends no sequence prefixes (protocol v2), so expects none back
+            raise ProtocolError(
+                f"rig controller on {self.port_name} answered {command!r} with a sequence prefix: {raw!r}",
+                raw=reply.raw,
+                command=command,
+                port=self.port_name,
+            )
         if isinstance(reply, ErrReply):
             raise reply.to_error(command=command, port=self.port_name)
         return reply

@@ -10,6 +10,12 @@ as it would to the real controller on a serial port.
 The virtual camera reads the rig state (carriage position, lit LED) through
 :meth:`VirtualController.state`, which returns an immutable snapshot taken
 under the controller's lock.
+
+Protocol version 2 (sequence prefixes with replay, ``STOP``) is implemented
+too. Motions are instantaneous here: the reply to ``HOME``/``MOVE`` is sent at
+once, so ``STOP`` only ever arrives between commands and ``ERR 5 STOPPED``
+(a motion aborted by ``STOP``, see the C firmware in ``rig/firmware/``) never
+occurs.
 """
 
 from __future__ import annotations
@@ -26,6 +32,7 @@ from dataclasses import dataclass
 from .protocol import (
     MAX_COMMAND_LENGTH,
     MAX_REPLY_LENGTH,
+    PROTOCOL_VERSION,
     ErrorCode,
     RigInfo,
     encode_line,
@@ -33,6 +40,9 @@ from .protocol import (
     format_identity,
     format_ok,
     parse_int,
+    split_sequence,
+    split_words,
+    with_sequence,
 )
 
 __all__ = ["ControllerState", "VirtualController", "PtyServer", "virtual_port"]
@@ -54,7 +64,7 @@ class ControllerState:
     """Immutable snapshot of the controller's state.
 
     Attributes:
-        homed: Whether ``HOME`` has run since the last reset.
+        homed: Whether ``HOME`` has run since the last reset or ``STOP``.
         position: Carriage position in motor steps from the home end
             stop (meaningless, and 0, while not homed).
         lit_led: Index of the lit LED, or ``None`` when all LEDs are off.
@@ -85,7 +95,11 @@ class VirtualController:
         if n_leds < 1 or max_steps < 0 or not steps_per_mm > 0:
             raise ValueError("need n_leds >= 1, max_steps >= 0, steps_per_mm > 0")
         self.info = RigInfo(
-            firmware=firmware, n_leds=n_leds, max_steps=max_steps, steps_per_mm=float(steps_per_mm)
+            firmware=firmware,
+            n_leds=n_leds,
+            max_steps=max_steps,
+            steps_per_mm=float(steps_per_mm),
+            protocol=PROTOCOL_VERSION,
         )
         format_identity(self.info)  # validates the firmware token
         self._lock = threading.Lock()
@@ -93,6 +107,9 @@ class VirtualController:
         self._position = 0
         self._lit: int | None = None
         self._revision = 0
+        # Sequence number and reply of the last prefixed command (v2 replay).
+        self._last_seq: int | None = None
+        self._last_reply = ""
 
     # -- conveniences --------------------------------------------------------
 
@@ -117,12 +134,14 @@ class VirtualController:
             return ControllerState(self._homed, self._position, self._lit, self._revision)
 
     def reset(self) -> None:
-        """Power-on reset: all LEDs off, position forgotten (not homed)."""
+        """Power-on reset: all LEDs off, position forgotten (not homed), stored sequence reply forgotten."""
         with self._lock:
             self._homed = False
             self._position = 0
             self._lit = None
             self._revision += 1
+            self._last_seq = None
+            self._last_reply = ""
 
     def serve_pty(self) -> PtyServer:
         """Start serving this controller on a new pseudo-terminal.
@@ -141,30 +160,51 @@ class VirtualController:
         ``line`` may carry its ``\\n`` / ``\\r\\n``. The line-framing layer
         (:class:`PtyServer`) drops blank lines without calling this; if one is
         passed anyway it is an unknown command.
+
+        A line with a sequence prefix ``@<n>`` is answered with the same
+        prefix; if ``n`` repeats the number of the last prefixed command, that
+        command's reply is returned again without executing anything (except
+        for ``STOP``, which always runs).
         """
         line = line.removesuffix("\n").removesuffix("\r")
         if len(line.encode("ascii", "replace")) + 1 > MAX_COMMAND_LENGTH:
             return format_err(ErrorCode.BAD_ARGUMENT, "LINE TOO LONG")
-        words = line.split()
+        try:
+            seq, body = split_sequence(line)
+        except ValueError:
+            return format_err(ErrorCode.BAD_ARGUMENT, "BAD SEQUENCE NUMBER")
+        words = split_words(body)
+        with self._lock:
+            if seq is None:
+                return self._execute(words)
+            if seq == self._last_seq and words[:1] != ["STOP"]:
+                return self._last_reply  # a retry: not executed again
+            reply = with_sequence(seq, self._execute(words))
+            self._last_seq, self._last_reply = seq, reply
+            return reply
+
+    # Helpers below run with self._lock held.
+
+    def _execute(self, words: list[str]) -> str:
+        """The reply to one command, its words without a sequence prefix."""
         if not words:
             return format_err(ErrorCode.UNKNOWN_COMMAND, "EMPTY COMMAND")
         verb, args = words[0], words[1:]
-        with self._lock:
-            if verb == "ID?":
-                return _no_args(args) or format_identity(self.info)
-            if verb == "HOME":
-                return _no_args(args) or self._home()
-            if verb == "MOVE":
-                return self._move(args)
-            if verb == "POS?":
-                return _no_args(args) or self._require_homed() or format_ok("POS", self._position)
-            if verb == "LED":
-                return self._led(args)
-            if verb == "LED?":
-                return _no_args(args) or format_ok("LED", "OFF" if self._lit is None else self._lit)
+        if verb == "ID?":
+            return _no_args(args) or format_identity(self.info)
+        if verb == "HOME":
+            return _no_args(args) or self._home()
+        if verb == "MOVE":
+            return self._move(args)
+        if verb == "POS?":
+            return _no_args(args) or self._require_homed() or format_ok("POS", self._position)
+        if verb == "LED":
+            return self._led(args)
+        if verb == "LED?":
+            return _no_args(args) or format_ok("LED", "OFF" if self._lit is None else self._lit)
+        if verb == "STOP":
+            return _no_args(args) or self._stop()
         return format_err(ErrorCode.UNKNOWN_COMMAND, "UNKNOWN COMMAND")
-
-    # Helpers below run with self._lock held.
 
     def _require_homed(self) -> str | None:
         if not self._homed:
@@ -190,6 +230,15 @@ class VirtualController:
             self._position = steps
             self._revision += 1
         return format_ok("POS", steps)
+
+    def _stop(self) -> str:
+        """Emergency stop: LEDs off, position no longer trusted (motions are instantaneous here)."""
+        if self._homed or self._position != 0 or self._lit is not None:
+            self._homed = False
+            self._position = 0
+            self._lit = None
+            self._revision += 1
+        return format_ok("STOP")
 
     def _led(self, args: list[str]) -> str:
         if len(args) == 1 and args[0] == "OFF":
@@ -310,8 +359,8 @@ class PtyServer:
                     overflow = False
                     reply = format_err(ErrorCode.BAD_ARGUMENT, "LINE TOO LONG")
                 else:
-                    text = raw.decode("ascii", errors="replace").removesuffix("\r")
-                    if not text.strip():
+                    text = raw.decode("ascii", errors="replace")  # handle() drops one "\r"
+                    if not text.removesuffix("\r").strip(" "):  # blank: only spaces count
                         continue
                     reply = self.controller.handle(text)
                 if not self._write_all(encode_line(reply, limit=MAX_REPLY_LENGTH)):

@@ -5,7 +5,8 @@ dataclasses, shared by the host driver (:mod:`facetsynth.rig.driver`) and
 the virtual controller (:mod:`facetsynth.rig.emulator`).
 
 Command strings returned here carry no line terminator; :func:`encode_line`
-adds it.
+adds it. Protocol version 2 adds sequence prefixes (:func:`split_sequence`,
+:func:`with_sequence`), ``STOP`` (:func:`cmd_stop`) and error code 5.
 """
 
 from __future__ import annotations
@@ -21,6 +22,8 @@ __all__ = [
     "MAX_COMMAND_LENGTH",
     "MAX_REPLY_LENGTH",
     "IDENT_PREFIX",
+    "PROTOCOL_VERSION",
+    "MAX_SEQUENCE",
     "ErrorCode",
     "RigError",
     "RigTimeoutError",
@@ -35,8 +38,12 @@ __all__ = [
     "cmd_led",
     "cmd_leds_off",
     "cmd_lit_led",
+    "cmd_stop",
     "encode_line",
     "parse_int",
+    "split_words",
+    "split_sequence",
+    "with_sequence",
     "format_ok",
     "format_err",
     "format_identity",
@@ -56,8 +63,13 @@ MAX_REPLY_LENGTH = 128
 """Longest reply line in bytes, terminator included."""
 IDENT_PREFIX = "FACETSYNTH-RIG"
 """First word after ``OK`` in the reply to ``ID?``."""
+PROTOCOL_VERSION = 2
+"""Protocol version implemented here, reported as ``PROTO=`` by ``ID?`` (absent: version 1)."""
+MAX_SEQUENCE = 9999
+"""Largest sequence number of an ``@<n>`` prefix (1 to 4 decimal digits)."""
 
 _INT_RE = re.compile(r"-?[0-9]+")
+_SEQUENCE_RE = re.compile(r"@([0-9]{1,4})")
 
 
 class ErrorCode(IntEnum):
@@ -67,6 +79,8 @@ class ErrorCode(IntEnum):
     BAD_ARGUMENT = 2
     OUT_OF_RANGE = 3
     NOT_HOMED = 4
+    STOPPED = 5
+    """(v2) A ``HOME``/``MOVE`` aborted by ``STOP`` (firmware only)."""
 
 
 class RigError(Exception):
@@ -108,29 +122,45 @@ class ProtocolError(RigError):
 
 @dataclass(frozen=True)
 class RigInfo:
-    """The controller's identity, as reported by ``ID?``."""
+    """The controller's identity, as reported by ``ID?``.
+
+    Attributes:
+        firmware: Version token (the emulator's ends in ``-virtual``).
+        n_leds: LEDs in the array.
+        max_steps: Largest valid carriage position in steps.
+        steps_per_mm: Motor steps per millimetre of carriage travel.
+        protocol: Protocol version (``PROTO=``; 1 for a controller that does
+            not report one, which knows neither sequence prefixes nor ``STOP``).
+    """
 
     firmware: str
     n_leds: int
     max_steps: int
     steps_per_mm: float
+    protocol: int = 1
 
 
 @dataclass(frozen=True)
 class OkReply:
-    """A successful reply: the words after ``OK``."""
+    """A successful reply: the words after ``OK``.
+
+    ``seq`` is the number of an ``@<n>`` prefix (``None`` without one); ``raw``
+    is the whole line, prefix included.
+    """
 
     words: tuple[str, ...]
     raw: str
+    seq: int | None = None
 
 
 @dataclass(frozen=True)
 class ErrReply:
-    """A failure reply ``ERR <code> <message>``."""
+    """A failure reply ``ERR <code> <message>`` (``seq``, ``raw``: as for :class:`OkReply`)."""
 
     code: int
     message: str
     raw: str
+    seq: int | None = None
 
     def to_error(self, command: str | None = None, port: str | None = None) -> RigError:
         """The :class:`RigError` describing this reply."""
@@ -197,6 +227,11 @@ def cmd_lit_led() -> str:
     return "LED?"
 
 
+def cmd_stop() -> str:
+    """``STOP`` (v2): emergency stop; LEDs off, motor released, not homed."""
+    return "STOP"
+
+
 def encode_line(text: str, limit: int = MAX_COMMAND_LENGTH) -> bytes:
     """A command (or, with ``limit=MAX_REPLY_LENGTH``, a reply) as bytes on
     the wire, terminator appended.
@@ -218,6 +253,41 @@ def parse_int(token: str) -> int | None:
     return int(token) if _INT_RE.fullmatch(token) else None
 
 
+def split_words(line: str) -> list[str]:
+    """The tokens of a command line: only the space character separates them."""
+    return [word for word in line.split(" ") if word]
+
+
+def split_sequence(line: str) -> tuple[int | None, str]:
+    """Split an optional ``@<n>`` sequence prefix (v2) off a line.
+
+    Returns ``(n, rest)`` for a prefixed line (``rest`` may be empty) and
+    ``(None, line)`` for a line whose first token does not start with ``@``.
+
+    Raises:
+        ValueError: if the first token starts with ``@`` but is not ``@``
+            followed by 1 to 4 decimal digits (``@``, ``@x``, ``@10000``).
+    """
+    stripped = line.lstrip(" ")
+    if not stripped.startswith("@"):
+        return None, line
+    token, _, rest = stripped.partition(" ")
+    match = _SEQUENCE_RE.fullmatch(token)
+    if match is None:
+        raise ValueError(f"malformed sequence prefix {token!r}")
+    return int(match.group(1)), rest
+
+
+def with_sequence(seq: int | None, text: str) -> str:
+    """``text`` with the prefix ``@<seq> `` (v2), or unchanged if ``seq`` is ``None``."""
+    if seq is None:
+        return text
+    seq = _require_int(seq, "sequence number")
+    if not 0 <= seq <= MAX_SEQUENCE:
+        raise ValueError(f"sequence number {seq} outside 0..{MAX_SEQUENCE}")
+    return f"@{seq} {text}"
+
+
 # --- replies: formatting (controller side) -----------------------------------
 
 
@@ -232,16 +302,13 @@ def format_err(code: ErrorCode | int, message: str) -> str:
 
 
 def format_identity(info: RigInfo) -> str:
-    """The reply to ``ID?`` for ``info``."""
+    """The reply to ``ID?`` for ``info`` (``PROTO=`` from version 2 on)."""
     if not info.firmware or any(c.isspace() for c in info.firmware):
         raise ValueError(f"firmware version must be one non-empty token: {info.firmware!r}")
-    return format_ok(
-        IDENT_PREFIX,
-        info.firmware,
-        f"LEDS={info.n_leds}",
-        f"STEPS={info.max_steps}",
-        f"STEPS_PER_MM={info.steps_per_mm:g}",
-    )
+    fields = [f"LEDS={info.n_leds}", f"STEPS={info.max_steps}", f"STEPS_PER_MM={info.steps_per_mm:g}"]
+    if info.protocol >= 2:
+        fields.append(f"PROTO={info.protocol}")
+    return format_ok(IDENT_PREFIX, info.firmware, *fields)
 
 
 # --- replies: parsing (host side) --------------------------------------------
@@ -250,19 +317,26 @@ def format_identity(info: RigInfo) -> str:
 def parse_reply(raw: str) -> OkReply | ErrReply:
     """Classify one reply line (terminator optional) as OK or ERR.
 
+    A sequence prefix ``@<n> `` (v2) is split off into the reply's ``seq``.
+
     Raises:
-        ProtocolError: if the line is neither a well-formed ``OK`` nor ``ERR``.
+        ProtocolError: if the line is neither a well-formed ``OK`` nor ``ERR``
+            (with an optional well-formed prefix).
     """
     line = raw.rstrip("\r\n")
-    words = line.split()
+    try:
+        seq, body = split_sequence(line)
+    except ValueError as exc:
+        raise ProtocolError(f"malformed sequence prefix in reply: {line!r}", raw=line) from exc
+    words = body.split()
     if words and words[0] == "OK":
-        return OkReply(words=tuple(words[1:]), raw=line)
+        return OkReply(words=tuple(words[1:]), raw=line, seq=seq)
     if words and words[0] == "ERR":
-        parts = line.split(None, 2)
+        parts = body.split(None, 2)
         code = parse_int(parts[1]) if len(parts) > 1 else None
         if code is None:
             raise ProtocolError(f"malformed ERR reply: {line!r}", raw=line)
-        return ErrReply(code=code, message=parts[2] if len(parts) > 2 else "", raw=line)
+        return ErrReply(code=code, message=parts[2] if len(parts) > 2 else "", raw=line, seq=seq)
     raise ProtocolError(f"reply is neither OK nor ERR: {line!r}", raw=line)
 
 
@@ -287,9 +361,20 @@ def parse_identity(reply: OkReply) -> RigInfo:
         steps_per_mm = float(fields["STEPS_PER_MM"])
     except (KeyError, ValueError) as exc:
         raise ProtocolError(f"identity reply lacks a valid field ({exc}): {reply.raw!r}", raw=reply.raw) from exc
-    if n_leds is None or max_steps is None or n_leds < 1 or max_steps < 0 or not steps_per_mm > 0:
+    version = parse_int(fields.get("PROTO", "1"))
+    if (
+        n_leds is None
+        or max_steps is None
+        or version is None
+        or n_leds < 1
+        or max_steps < 0
+        or not steps_per_mm > 0
+        or version < 1
+    ):
         raise ProtocolError(f"identity reply has invalid values: {reply.raw!r}", raw=reply.raw)
-    return RigInfo(firmware=words[1], n_leds=n_leds, max_steps=max_steps, steps_per_mm=steps_per_mm)
+    return RigInfo(
+        firmware=words[1], n_leds=n_leds, max_steps=max_steps, steps_per_mm=steps_per_mm, protocol=version
+    )
 
 
 def parse_position(reply: OkReply) -> int:

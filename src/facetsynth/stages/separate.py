@@ -56,8 +56,9 @@ def run(geometry: str | Path, kd_out: str | Path, specular_out: str | Path, vali
         finally:
             scratch.unlink(missing_ok=True)
     write_exr(kd_out, {"RGB": kd.reshape(capture.grid.rows, capture.grid.cols, 3)},
-              {"quantity": "kd (diffuse albedo), paper 002 eq. 9 (the mean of the lowest "
-                                          f"{100 * settings.lowest:g} % of the qualifying samples)"})
+              {"quantity": "kd (diffuse albedo), paper 002 eq. 9" + (
+                  f" (the mean of the lowest {100 * settings.lowest:g} % of the qualifying samples)"
+                  if settings.lowest else "")})
 
     dark = int((kd.sum(axis=1) == 0).sum())
     metrics = {"ground_truth": capture.truth_scene is not None, "points": n_points, "frames": n_frames,
