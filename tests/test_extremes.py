@@ -368,8 +368,8 @@ def write_rectified(folder: Path, scene_text: str, plane: PlaneGrid, lights: np.
 
 def eq9_truth(kd, ks, lights, point=np.zeros(3), eta=1.5, alpha=(0.2, 0.3), angle=20.0, lowest=0.03):
     """kd that eq. 9 must give for a point of ``one_material`` (written out: of the true rho at the lights
-    whose radiance exceeds 5 % of the mean, per channel the mean of the round(lowest x n) smallest (at least
-    one; the stage's default ``separate.lowest``), times pi; the specular tail there is its bias)."""
+    whose radiance exceeds 5 % of the mean, the mean of the round(lowest x n) (at least one) with the smallest
+    channel mean, the stage's default ``separate.lowest``, times pi; the specular tail there is its bias)."""
     view = np.array([0.0, -0.52, 0.9])
     wi = lights - point
     r2 = np.sum(wi**2, -1)
@@ -379,7 +379,7 @@ def eq9_truth(kd, ks, lights, point=np.zeros(3), eta=1.5, alpha=(0.2, 0.3), angl
     intensity = (rho * (np.clip(wi[:, 2], 0, None) / r2)[:, None] * 0.3).mean(axis=1)
     qualifying = rho[intensity > 0.05 * intensity.mean()]
     m = max(1, int(np.round(lowest * len(qualifying))))
-    return np.pi * np.sort(qualifying, axis=0)[:m].mean(axis=0)
+    return np.pi * qualifying[np.argsort(qualifying.mean(axis=1))[:m]].mean(axis=0)
 
 
 def one_material(kd, ks, eta=1.5, alpha=(0.2, 0.3), angle=20.0, name="m") -> str:

@@ -171,10 +171,10 @@ def test_partial_ndf_edge_cases_pure_diffuse_grazing_and_a_sharp_lobe():
 def test_diffuse_level_under_noise_averages_the_lowest_samples():
     """Eq. 9's minimum of n noisy samples lies below the diffuse level (the noise's low tail; 480 lights:
     about 3 sigma), and every residual inherits that as a pedestal under the lobe. ``lowest`` averages the
-    darkest few per cent instead: measured on 400 points of a glossy GGX (alpha 0.1 x 0.3) under the
-    paper-480 light grid with 2 % radiance noise, the median kd bias -4.6 % (minimum) -> -2.9 % (lowest
-    3 %) and its spread 0.50 % -> 0.29 %; noise-free, the specular tail the average takes in adds at most
-    0.03 % here (a narrow lobe; broad ones take in more: docs/decisions.md)."""
+    darkest few per cent (chosen on the channel mean) instead: measured on 400 points of a glossy GGX (alpha
+    0.1 x 0.3) under the paper-480 light grid with 2 % radiance noise, the median kd bias -4.6 % (minimum
+    per channel) -> -1.4 % (lowest 3 %) and its spread 0.50 % -> 0.24 %; noise-free, the specular tail the
+    average takes in adds at most 0.03 % here (a narrow lobe; broad ones take in more: docs/decisions.md)."""
     rng = np.random.default_rng(5)
     x, y = np.meshgrid(np.linspace(-0.11, 0.11, 20), np.linspace(0.0, 0.2, 24))       # 20 LEDs x 24 positions
     lights = np.column_stack([x.ravel(), y.ravel(), np.full(x.size, 0.04)])
@@ -197,7 +197,7 @@ def test_diffuse_level_under_noise_averages_the_lowest_samples():
     assert np.all(np.abs(clean_low - clean_min) < 5e-4)                       # measured at most 3.4e-4
     noisy_min, noisy_low = kd_error(0.02, 0.0), kd_error(0.02, 0.03)
     assert np.median(noisy_min) < -0.04                                        # the bias is real
-    assert 0.7 * np.median(noisy_min) < np.median(noisy_low) < 0             # a third of the bias gone
-    assert np.std(noisy_low) < 0.65 * np.std(noisy_min)
+    assert 0.4 * np.median(noisy_min) < np.median(noisy_low) < 0             # two thirds of the bias gone
+    assert np.std(noisy_low) < 0.6 * np.std(noisy_min)
     with pytest.raises(ValueError, match="fraction"):
         diffuse_level(radiance, radiance, valid, 0.05, 1.5)

@@ -27,15 +27,16 @@ def brdf_samples(radiance: np.ndarray, points: np.ndarray, light_positions: np.n
 def diffuse_level(rho: np.ndarray, radiance: np.ndarray, valid: np.ndarray, threshold: float = 0.05,
                   lowest: float = 0.0) -> np.ndarray:
     """Eq. 9: rho_d(x) = min_q { rho(x, i_q, o) | I_q(x) > threshold * I_avg(x) }, per channel; with
-    ``lowest`` > 0, the mean of the m smallest of those samples instead, m = max(1, round(lowest * n)) of
-    the point's n qualifying samples, per channel.
+    ``lowest`` > 0, the mean of the m of those samples whose channel mean is smallest instead, m = max(1,
+    round(lowest * n)) of the point's n qualifying samples.
 
     The minimum of n noisy samples lies about sigma sqrt(2 ln n) below the
-    diffuse level (480 samples: 3.5 sigma); averaging the lowest few per cent
-    removes most of that and takes in more of the specular tail those
-    samples carry. Which error is larger depends on the noise and the lobes:
-    docs/decisions.md, "Diffuse level under noise" (config
-    ``separate.lowest``, default 0: eq. 9 as printed).
+    diffuse level (480 samples: 3.5 sigma), and sigma of a rectified point
+    depends on where it falls between camera pixels. Averaging the lowest few
+    per cent removes most of that bias and takes in more of the specular tail
+    those samples carry; choosing them on the channel mean, one set for all
+    channels, keeps each channel's own noise out of the choice.
+    docs/decisions.md, "Diffuse level under noise" (config ``separate.lowest``).
     I is the channel mean of the radiance; I_avg its mean over the valid
     samples of the point. A sample whose rho or radiance is NaN or Inf counts
     as invalid. A point with no qualifying sample (fully dark, or no valid
@@ -49,17 +50,18 @@ def diffuse_level(rho: np.ndarray, radiance: np.ndarray, valid: np.ndarray, thre
     average = np.divide(np.where(valid, intensity, 0.0).sum(axis=1), n_valid,
                         out=np.zeros(n_valid.shape), where=n_valid > 0)
     qualifies = valid & (intensity > threshold * average[:, None]) & (average[:, None] > 0)
-    values = np.where(qualifies[..., None], rho, np.inf)
-    if lowest == 0.0 or values.shape[1] == 0:
-        minimum = values.min(axis=1, initial=np.inf)
+    if lowest == 0.0 or rho.shape[1] == 0:
+        minimum = np.where(qualifies[..., None], rho, np.inf).min(axis=1, initial=np.inf)
         return np.where(np.isfinite(minimum), minimum, 0.0)
     n = qualifies.sum(axis=1)
     m = np.clip(np.round(lowest * n), 1, None).astype(np.intp)                    # (P,) <= n where n >= 1
     k = int(m.max())
-    smallest = np.sort(np.partition(values, k - 1, axis=1)[:, :k] if k < values.shape[1] else values, axis=1)
-    taken = (np.arange(k)[None, :] < m[:, None])[..., None] & np.isfinite(smallest)
-    level = np.where(taken, smallest, 0.0).sum(axis=1) / m[:, None]
-    return np.where(n[:, None] > 0, level, 0.0)
+    key = np.where(qualifies, rho.mean(axis=-1), np.inf)
+    order = np.argpartition(key, k - 1, axis=1)[:, :k] if k < key.shape[1] else np.arange(key.shape[1])[None]
+    order = np.take_along_axis(order, np.argsort(np.take_along_axis(key, order, axis=1), axis=1), axis=1)
+    taken = (np.arange(k)[None, :] < m[:, None]) & np.isfinite(np.take_along_axis(key, order, axis=1))
+    level = np.where(taken[..., None], np.take_along_axis(rho, order[..., None], axis=1), 0.0).sum(axis=1)
+    return np.where(n[:, None] > 0, level / m[:, None], 0.0)
 
 
 def specular_residual(rho: np.ndarray, rho_d: np.ndarray) -> np.ndarray:
