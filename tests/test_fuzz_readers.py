@@ -330,3 +330,12 @@ def test_merl_with_hostile_values(merl_path, values):
             for index, _ in values:
                 f.seek(12 + 8 * index)
                 f.write(struct.pack("<d", 0.5 * 1500))
+
+
+def test_a_long_bad_axis_is_named_on_one_line():
+    """Found by the fuzzer (test_rgl_damaged, 2026-12-02): eight denormal angles printed by numpy wrapped onto
+    a second line of the error message."""
+    values = np.array([4.0371e-40, 4.15e-34, 0.0, 3.5873e-43, 0.0, 2.8699e-42, 0.0, 1.1479e-41])
+    with pytest.raises(InputError) as caught:
+        readers._check_axis("brdf.bsdf", "theta_i", values, 0.0, np.pi / 2)
+    assert "\n" not in caught.value.problem and "theta_i" in caught.value.problem

@@ -378,7 +378,8 @@ def test_params_stage_interval_unit_sets_n_of_the_test(tmp_path):
         np.testing.assert_allclose(interval_rep[:, 0], [records[m]["eta_interval"][0] for m in material])
     for r in (0, 1):      # fewer units, a wider interval (n - 1 = 639, 31, 1 per material); measured widths
         # 0.003 / 0.014 / 0.076 (eta 1.35) and 0.021 / 0.098 / 0.54 (eta 2.6)
-        assert 3 * widths["sample"][r] < widths["point"][r] < 0.2 and 3 * widths["point"][r] < widths["representative"][r]
+        assert 3 * widths["sample"][r] < widths["point"][r] < 0.2
+        assert 3 * widths["point"][r] < widths["representative"][r]
 
 
 def test_params_stage_keeps_eta_where_it_is_not_identifiable_and_says_so(tmp_path):

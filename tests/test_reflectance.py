@@ -183,7 +183,8 @@ def test_diffuse_level_under_noise_averages_the_lowest_samples():
     r2 = np.sum(wi ** 2, -1)
     wi /= np.sqrt(r2)[..., None]
     kd = 0.15
-    radiance = microfacet.rho(wi, O, np.full(3, kd), np.full(3, 0.7), 1.5, 0.1, 0.3, 0.0) * (wi[..., 2] / r2)[..., None] * 0.3
+    rho = microfacet.rho(wi, O, np.full(3, kd), np.full(3, 0.7), 1.5, 0.1, 0.3, 0.0)
+    radiance = rho * (wi[..., 2] / r2)[..., None] * 0.3
     intensity = np.full((len(lights), 3), 0.3)
     valid = np.ones(radiance.shape[:2], bool)
 

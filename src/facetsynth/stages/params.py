@@ -169,9 +169,9 @@ def fit_eta(model: SVBRDF, w18: np.ndarray, samples: dict[str, np.ndarray], mate
     such as the points on a black marker) keeps the default: its fitted eta,
     divided out of the NDF, would scale that representative's ks by up to
     10 x and, through eq. 18's negative weights, its neighbours' ks too
-    (ggx-tiles at native resolution: ks 0.19 for 0.7). Returns (eta (P,), fitted (P,) bool,
-    per-material records, eta per representative (R,), interval per
-    representative (R, 2)). ``samples["c_ref"]`` None: eq. 19 as printed (no
+    (ggx-tiles at native resolution: ks 0.19 for 0.7). Returns (eta (P,),
+    fitted (P,) bool, per-material records, eta per representative (R,),
+    interval per representative (R, 2)). ``samples["c_ref"]`` None: eq. 19 as printed (no
     Fresnel factor in the NDF, e.g. an analytic material).
     """
     n_rep = model.ndf.shape[0]

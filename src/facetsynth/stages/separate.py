@@ -31,7 +31,8 @@ FRAME_BLOCK = 32    # frames read before their samples are written
 class Settings(StageSettings):
     """The stage's knobs: config ``separate`` (workflow/schemas/config.schema.yaml)."""
     threshold: float = 0.05   # eq. 9: samples darker than threshold x the point's average intensity are left out
-    lowest: float = 0.03      # eq. 9 averages this fraction of the qualifying samples, the darkest (0: the minimum)
+    lowest: float = 0.03      # eq. 9 averages this fraction of the qualifying samples, those of lowest channel
+                              # mean (0: eq. 9's minimum, per channel)
 
 
 def run(geometry: str | Path, kd_out: str | Path, specular_out: str | Path, valid_out: str | Path,

@@ -247,7 +247,7 @@ def _check_axis(path, field, values, lo, hi):
     _check_finite(path, field, values)
     if values.size == 0 or np.any(np.diff(values) <= 0) or values[0] < lo - 1e-5 or values[-1] > hi + 1e-5:
         raise InputError(path, f"field {field!r}: expected increasing angles within [{lo:.4g}, {hi:.4g}], "
-                               f"found {np.array2string(values, precision=4, threshold=8)}")
+                               f"found {np.array2string(values, precision=4, threshold=8, max_line_width=10**6)}")
 
 
 def _check_rgl_values(path, f, vndf, rgb):
