@@ -7,9 +7,9 @@ Backends, each served on a pseudo-terminal and spoken to through pyserial (raw l
   and state code that runs on the ATmega328P, with the UART on stdin/stdout and the carriage simulated.
   Motions take no time here (``FIRMWARE_STEP_US=0``) except in the tests of motion timing.
 - ``simavr``: the AVR image itself (``build/facetsynth-rig.elf``) in simavr (``make simavr``), with the real
-  UART and step timing. Optional and opt-in, as it takes about 30 s (every ``HOME`` re-approaches the switch
-  at 2.5 mm/s; a full travel is 6 s of simulated time): set ``FACETSYNTH_TEST_SIMAVR=1``. Needs Debian's
-  gcc-avr, avr-libc, binutils-avr and libsimavr-dev.
+  UART and step timing. Marked ``simavr`` and deselected in the unit suite, as it takes about 30 s (every
+  ``HOME`` re-approaches the switch at 2.5 mm/s; a full travel is 6 s of simulated time): ``make
+  test-firmware`` runs it. Needs Debian's gcc-avr, avr-libc, binutils-avr and libsimavr-dev.
 
 Each test starts from a power-on controller (the firmware processes are started per test). Where the
 backends must differ it is because the emulator's motions are instantaneous: input that arrives during a
@@ -52,8 +52,9 @@ TOO_LONG = "ERR 2 LINE TOO LONG"
 
 FIRMWARE_DIR = Path(__file__).resolve().parents[1] / "rig" / "firmware"
 REPLY_TIMEOUT = 15.0  # s; generous: a full-travel move in simavr takes 3-6 s of wall time
-BACKENDS = ["emulator", "firmware", "simavr"]
-FIRMWARE_BACKENDS = ["firmware", "simavr"]
+SIMAVR = pytest.param("simavr", marks=pytest.mark.simavr)   # the real step rates: make test-firmware
+BACKENDS = ["emulator", "firmware", SIMAVR]
+FIRMWARE_BACKENDS = ["firmware", SIMAVR]
 
 
 def firmware_version() -> str:
@@ -87,14 +88,9 @@ def host_firmware(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return build / "rig-host"
 
 
-SIMAVR_OPT_IN = "FACETSYNTH_TEST_SIMAVR"
-
-
 @pytest.fixture(scope="session")
 def simavr_firmware(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     """``rig-simavr`` and the AVR image it runs, built once per session."""
-    if not os.environ.get(SIMAVR_OPT_IN):
-        pytest.skip(f"the AVR image in simavr runs at the real step rates (about 30 s): set {SIMAVR_OPT_IN}=1")
     if shutil.which("avr-gcc") is None or shutil.which("make") is None or shutil.which("cc") is None:
         pytest.skip("avr-gcc is not installed (Debian: gcc-avr avr-libc binutils-avr)")
     if not Path("/usr/include/simavr/sim_avr.h").exists():
