@@ -394,11 +394,7 @@ class RigController:
             try:
                 ser.write(b"\n")
             except _IO_ERRORS as exc:
-                raise RigError(
-                    f"I/O error on rig controller port {self.port_name} during {command!r}: {exc}",
-                    command=command,
-                    port=self.port_name,
-                ) from exc
+                raise self._io_error(command, exc) from exc
             for attempt in range(self.retries + 1):
                 try:
                     reply = self._exchange(command)
@@ -417,6 +413,11 @@ class RigController:
                     continue
                 self._adopt(info)
                 return
+
+    def _io_error(self, command: str, exc: BaseException) -> RigError:
+        """The error for an I/O failure of the port during ``command``."""
+        return RigError(f"I/O error on rig controller port {self.port_name} during {command!r}: {exc}",
+                        command=command, port=self.port_name)
 
     def _error(self, reply: ErrReply, command: str) -> RigError:
         """The error for an ``ERR`` reply; its ``raw`` is the reply without the sequence prefix."""
@@ -571,13 +572,7 @@ class RigController:
                 )
             ) from exc
         except _IO_ERRORS as exc:
-            raise _Disconnected(
-                RigError(
-                    f"I/O error on rig controller port {self.port_name} during {command!r}: {exc}",
-                    command=command,
-                    port=self.port_name,
-                )
-            ) from exc
+            raise _Disconnected(self._io_error(command, exc)) from exc
         finally:
             if hasattr(ser, "timeout") and self._serial is ser:
                 try:
