@@ -222,6 +222,74 @@ def read_frame(path: PathLike, require_finite: bool = True) -> tuple[np.ndarray,
     return rgb, saturated
 
 
+# --- 8-bit exposures ----------------------------------------------------------------
+
+_EXR_MAGIC = b"\x76\x2f\x31\x01"
+
+
+def exposure_bits(path: PathLike) -> int | None:
+    """How an exposure file stores its values: None for OpenEXR (linear exposure values), 8 for an 8-bit
+    image (JPEG, PNG, TIFF: a camera's nonlinear codes, linearized by the hdr stage's recovered response,
+    :mod:`facetsynth.response`). Decided by the pixel format (OpenImageIO), not the name; any other format
+    is an InputError naming the file."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as f:
+            if f.read(4) == _EXR_MAGIC:
+                return None
+    except FileNotFoundError:
+        raise InputError(path, "file not found") from None
+    except OSError as exc:
+        raise InputError(path, f"unreadable ({exc.strerror})") from None
+    spec = _oiio_spec(path)
+    import OpenImageIO as oiio
+    if spec.format.basetype == oiio.UINT8:
+        return 8
+    raise InputError(path, f"a {spec.format} {spec.nchannels}-channel image: exposures are OpenEXR (linear) or "
+                           "8-bit images (JPEG, PNG, TIFF)")
+
+
+def read_codes(path: PathLike) -> np.ndarray:
+    """An 8-bit image's codes as (H, W, 3) uint8 (a grey image repeated in R, G, B; alpha dropped)."""
+    import OpenImageIO as oiio
+
+    path = Path(path)
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise InputError(path, f"not a readable image ({oiio.geterror().strip() or 'unknown format'})")
+    try:
+        spec = inp.spec()
+        pixels = inp.read_image(0, 0, 0, spec.nchannels, oiio.UINT8)
+    finally:
+        inp.close()
+    if pixels is None or spec.nchannels not in (1, 3, 4):
+        raise InputError(path, f"unreadable 8-bit image ({spec.nchannels} channels; {oiio.geterror().strip()})")
+    pixels = np.asarray(pixels, np.uint8).reshape(spec.height, spec.width, spec.nchannels)
+    return np.ascontiguousarray(np.repeat(pixels, 3, axis=-1) if spec.nchannels == 1 else pixels[..., :3])
+
+
+def read_exposure(path: PathLike) -> tuple[np.ndarray, int | None]:
+    """An exposure file's values as (H, W, 3) float32 and its bits (:func:`exposure_bits`): an EXR's linear
+    values (NaN / Inf kept), or an 8-bit image's codes 0..255 (NOT linear: see :mod:`facetsynth.response`)."""
+    bits = exposure_bits(path)
+    if bits is None:
+        return read_frame(path, require_finite=False)[0], None
+    return read_codes(path).astype(np.float32), bits
+
+
+def _oiio_spec(path: Path):
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise InputError(path, f"not a readable image: neither OpenEXR nor a format OpenImageIO reads "
+                               f"({oiio.geterror().strip() or 'unknown format'})")
+    try:
+        return inp.spec()
+    finally:
+        inp.close()
+
+
 # --- JSON / YAML / npy -------------------------------------------------------------
 
 def write_json(path: PathLike, data: Any) -> None:

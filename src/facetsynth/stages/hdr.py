@@ -1,9 +1,18 @@
-"""Stage ``hdr``: merge each frame's exposures into one scene-linear EXR (paper 002 sec. 4)."""
+"""Stage ``hdr``: merge each frame's exposures into one scene-linear EXR (paper 002 sec. 4).
+
+Exposures are EXR (linear exposure values) or, all of them, 8-bit images (JPEG, PNG, TIFF, told by the
+pixel format: :func:`facetsynth.fileio.exposure_bits`): for those the camera response is recovered from
+the capture's brackets (Debevec and Malik 1997, :mod:`facetsynth.response`), the codes linearized with it
+and merged with its 8-bit sensor model (code 255 clipped, code 0 the noise floor, quantisation noise); the
+manifest's ``saturation`` and ``noise`` are then not used (the linear scale puts clipping at 1).
+"""
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import os
+from collections import Counter
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import NamedTuple
@@ -12,18 +21,20 @@ import numpy as np
 
 from .. import manifest as manifest_io
 from ..errors import InputError
-from ..fileio import atomic_dir, file_key, read_exr, read_rgb, write_exr, write_json
+from ..fileio import atomic_dir, exposure_bits, file_key, read_codes, read_exr, read_rgb, write_exr, write_json
 from ..frames import map_frames
 from ..hdr import SensorModel, merge_exposures
 from ..lightplane import LightTriangulation
 from ..metrics import relative_errors
+from ..response import Response, ResponseSettings, recover_response
 from .common import flag_degenerate
 
 log = logging.getLogger(__name__)
 
 
 def run(capture_dir: str | Path, frames_dir: str | Path, manifest_out: str | Path, metrics_out: str | Path,
-        floor_sigmas: float = 3.0, saturation_margin: float = 0.02, threads: int = 1) -> None:
+        floor_sigmas: float = 3.0, saturation_margin: float = 0.02, threads: int = 1,
+        response_settings: ResponseSettings = ResponseSettings()) -> None:
     """Merge every frame; write ``frames_dir/NNNN.exr``, an HDR manifest and metrics.
 
     The output manifest describes the merged frames as a capture with one
@@ -32,6 +43,7 @@ def run(capture_dir: str | Path, frames_dir: str | Path, manifest_out: str | Pat
     ``threads`` threads. Negative exposure values are clipped (:class:`Negatives`): their count is
     in the metrics (``negative_values``) and each frame's header, and a WARNING names the first file.
     A run killed at any point resumes in the staging folder, to the same bytes.
+    8-bit exposures (module docstring): the recovered curve is in the metrics (``response``).
     """
     capture = manifest_io.load(capture_dir)
     manifest_path = Path(capture["_dir"]) / "manifest.json"
@@ -41,8 +53,16 @@ def run(capture_dir: str | Path, frames_dir: str | Path, manifest_out: str | Pat
                          shot_gain=noise.get("shot_gain", 0.0), floor_sigmas=floor_sigmas,
                          saturation_margin=saturation_margin)
     shape = (capture["camera"]["height"], capture["camera"]["width"], 3)
+    response = None
+    if _eight_bit(capture, manifest_path):
+        response = _recover_response(capture, shape, manifest_path, response_settings)
+        sensor = response.sensor_model(floor_sigmas)
+        log.info("8-bit exposures: camera response recovered (Debevec-Malik 1997; scale from %s)",
+                 ", ".join(response.scale_from))
     frames_dir, manifest_out = Path(frames_dir), Path(manifest_out)
     key = {"capture": file_key(manifest_path), "sensor": asdict(sensor)}
+    if response is not None:
+        key["response"] = hashlib.sha256(response.linear.tobytes()).hexdigest()
     with atomic_dir(frames_dir, key) as staging:
 
         def merge_frame(job: tuple[int, dict]) -> Merged:
@@ -53,7 +73,7 @@ def run(capture_dir: str | Path, frames_dir: str | Path, manifest_out: str | Pat
             merged_before = _read_merged(out) if out.exists() else None
             if merged_before is None:
                 files = [e["file"] for e in frame["exposures"]]
-                values = np.stack([_read_exposure(file, shape) for file in files])
+                values = np.stack([_read_exposure(file, shape, response) for file in files])
                 merged, saturated = merge_exposures(values, times, sensor)
                 write_exr(out, {"RGB": merged, "saturated": saturated.astype(np.float32)},
                           header=_negatives(files, values).header(), precision="float24")
@@ -100,6 +120,11 @@ def run(capture_dir: str | Path, frames_dir: str | Path, manifest_out: str | Pat
     if negatives.count:
         log.warning("%d exposure values are negative (first in %s): taken as read noise around the black "
                     "level, below the noise floor, and clipped to 0", negatives.count, negatives.first_file)
+    if response is not None:
+        metrics["exposure_bits"] = 8
+        metrics["response"] = {"method": "Debevec and Malik 1997 (cv2.createCalibrateDebevec)",
+                               "scale_from": list(response.scale_from),
+                               "sensor": asdict(sensor), **response.to_json()}
     if errors:
         metrics["median_rel_error"] = float(np.median(np.concatenate(errors)))
         log.info("HDR median relative error against the true radiance: %.5f", metrics["median_rel_error"])
@@ -166,9 +191,45 @@ def _read_merged(path: Path) -> tuple[np.ndarray, np.ndarray, Negatives] | None:
     return channels["RGB"], channels["saturated"] > 0, Negatives.from_header(header)
 
 
-def _read_exposure(file: str, shape: tuple[int, ...]) -> np.ndarray:
-    image = read_rgb(file)
+def _read_exposure(file: str, shape: tuple[int, ...], response: Response | None = None) -> np.ndarray:
+    """One exposure's linear values: an EXR's as stored, an 8-bit image's codes through ``response``."""
+    image = read_rgb(file) if response is None else read_codes(file)
     if image.shape != shape:
         raise InputError(file, f"frame is {image.shape[1]}x{image.shape[0]}, the manifest's camera is "
                                f"{shape[1]}x{shape[0]}")
-    return image
+    return image if response is None else response.linearize(image)
+
+
+def _eight_bit(capture: dict, manifest_path: Path) -> bool:
+    """Whether the capture's exposures are 8-bit images (all of them) rather than EXR (all of them)."""
+    kinds = {}
+    for frame in capture["frames"]:
+        for exposure in frame["exposures"]:
+            kinds.setdefault(exposure_bits(exposure["file"]), exposure["file"])
+            if len(kinds) > 1:
+                raise InputError(manifest_path, f"exposures mix EXR ({kinds[None]}) and 8-bit images ({kinds[8]}): "
+                                                "convert them to one kind")
+    return 8 in kinds
+
+
+RESPONSE_FRAMES = 8
+"""Frames whose brackets the 8-bit camera response is recovered from (evenly spread over the capture)."""
+
+
+def _recover_response(capture: dict, shape: tuple[int, ...], manifest_path: Path,
+                      settings: ResponseSettings) -> Response:
+    """The camera response from the brackets of up to RESPONSE_FRAMES frames taken with the capture's most
+    common exposure times (:func:`facetsynth.response.recover_response`)."""
+    brackets = Counter(tuple(e["time"] for e in f["exposures"]) for f in capture["frames"])
+    times = max(brackets, key=brackets.get)
+    frames = [f for f in capture["frames"] if tuple(e["time"] for e in f["exposures"]) == times]
+    chosen = [frames[i] for i in np.unique(np.linspace(0, len(frames) - 1, RESPONSE_FRAMES).round().astype(int))]
+    stacks = []
+    for frame in chosen:
+        codes = [read_codes(e["file"]) for e in frame["exposures"]]
+        for e, c in zip(frame["exposures"], codes):
+            if c.shape != shape:
+                raise InputError(e["file"], f"frame is {c.shape[1]}x{c.shape[0]}, the manifest's camera is "
+                                            f"{shape[1]}x{shape[0]}")
+        stacks.append(np.stack(codes))
+    return recover_response(stacks, times, settings, source=str(manifest_path))
