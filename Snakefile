@@ -11,6 +11,7 @@ configfile: "config/config.yaml"
 
 
 include: "workflow/rules/common.smk"
+include: "workflow/rules/calibrate.smk"
 include: "workflow/rules/capture.smk"
 include: "workflow/rules/hdr.smk"
 include: "workflow/rules/rectify.smk"
@@ -22,10 +23,11 @@ include: "workflow/rules/stencil.smk"
 
 
 def final_outputs(sample):
-    """What a user takes away: the fitted SVBRDF with its stencil models, and for a virtual
-    sample (whose held-out views the virtual rig can render) the held-out validation."""
+    """What a user takes away: the fitted SVBRDF with its stencil models, and for a sample whose
+    held-out views the virtual rig can render (a virtual one, or the rig with the virtual camera)
+    the held-out validation."""
     outputs = [f"results/{sample}/svbrdf", f"results/{sample}/stencil_fit/metrics.json"]
-    if SAMPLE_SHEET[sample]["source"] == "virtual":
+    if rendered_truth(sample) is not None:
         outputs.append(f"results/{sample}/validate/metrics.json")
     return outputs
 

@@ -195,7 +195,7 @@ def test_png_renamed_exr_fails_check_naming_the_file(capture, capsys):
     oiio.ImageBuf(oiio.ImageSpec(4, 3, 3, "uint8")).write(str(png))    # right size, R G B: the header passed
     png.replace(frame)
     line = check_error(capture, capsys)
-    assert f"{frame.resolve()}: unreadable frame: not a readable OpenEXR image" in line
+    assert "manifest.json: exposures mix EXR (" in line and f"and 8-bit images ({frame.resolve()})" in line
 
 
 def test_nan_pixels_fail_check_with_first_file_and_counts(capture, capsys):

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 from .errors import InputError
+from .rig.protocol import RigError
 
 
 def _check(args: argparse.Namespace) -> None:
@@ -21,6 +22,21 @@ def _check(args: argparse.Namespace) -> None:
           f"camera {m['camera']['width']}x{m['camera']['height']}, {clipping}, {len(warnings)} warning(s)")
     for warning in warnings:
         print(f"facetsynth check: warning: {args.capture}: {warning}", file=sys.stderr)
+
+
+def _rig_check(args: argparse.Namespace) -> None:
+    """Controller and camera found, the firmware's identity, a test move and a flash of every LED."""
+    from .rig.session import RigDescription, check
+    for line in check(RigDescription.load(args.rig), port=args.port):
+        print(line)
+
+
+def _rig_capture(args: argparse.Namespace) -> None:
+    """A capture outside the workflow, for a quick look (the workflow's ``rig`` source runs the same code)."""
+    from .rig.session import RigDescription, capture
+    manifest = capture(RigDescription.load(args.rig), args.out_dir, port=args.port)
+    print(f"{args.out_dir}: {len(manifest['frames'])} frames of {len(manifest['frames'][0]['exposures'])} "
+          f"exposure(s); check it with: facetsynth check {args.out_dir}")
 
 
 def _predict(args: argparse.Namespace) -> None:
@@ -198,10 +214,22 @@ def main(argv: list[str] | None = None) -> int:
     ed.add_argument("--force", action="store_true", help=FORCE_HELP)
     ed.set_defaults(run=_stencil_edit)
 
+    rig = commands.add_parser("rig", help="the real rig: check it, or capture a sample outside the workflow")
+    rig_commands = rig.add_subparsers(dest="rig_command", required=True)
+    rig_check = rig_commands.add_parser("check", help="find the controller and the camera, report the firmware, "
+                                                      "make a test move and flash every LED")
+    rig_capture = rig_commands.add_parser("capture", help="capture the rig's scan into a capture folder; run it "
+                                                          "again to resume an interrupted capture")
+    for sub, run in ((rig_check, _rig_check), (rig_capture, _rig_capture)):
+        sub.add_argument("rig", metavar="RIG", help="rig description (YAML, schema rig.schema.json)")
+        sub.add_argument("--port", help="the controller's serial port (default: the description's controller.port)")
+        sub.set_defaults(run=run)
+    rig_capture.add_argument("out_dir", metavar="OUT_DIR", help="capture folder to write (manifest.json, frames/)")
+
     args = parser.parse_args(argv)
     try:
         args.run(args)
-    except InputError as exc:
+    except (InputError, RigError) as exc:
         print(f"facetsynth {args.command}: error: {exc}", file=sys.stderr)
         return 1
     return 0

@@ -23,7 +23,7 @@ import logging
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import yaml
@@ -105,6 +105,21 @@ class VirtualRig:
         return CalibrationError(intensity_factor=factor, led_offset=offset,
                                 camera_rotation=_rotation(axis, np.radians(e.get("camera_rotation_deg", 0.0))))
 
+    def nominal_calibration(self, sample_width: float, seed: int = 0) -> dict[str, Any]:
+        """The calibration this description states (``calibration.json``, schema ``rig_calibration``): the
+        camera for a sample ``sample_width`` wide, each LED at home and the carriage's step, the LED
+        intensities drawn for captures with ``seed``. Without ``calibration_error`` it is the rig's truth."""
+        camera = self.camera(sample_width)
+        home = np.array([self.led_position(led, 0) for led in range(self.desc["leds"]["count"])])
+        return {"version": 1, "units": "m", "rig": self.desc["name"],
+                "camera": {"width": camera.width, "height": camera.height, "K": camera.K.tolist(),
+                           "distortion": camera.distortion.tolist(), "R": camera.R.tolist(), "t": camera.t.tolist(),
+                           "reprojection_px": 0.0},
+                "leds": {"count": len(home), "home": home.tolist(),
+                         "step": (self.led_position(0, 1) - self.led_position(0, 0)).tolist(),
+                         "intensity": self.led_intensities(np.random.default_rng(seed)).tolist()},
+                "residuals": {"source": "nominal: the virtual rig's description"}}
+
     def camera(self, sample_width: float) -> Camera:
         """The rig's camera looking at the sample centre from distance d, height h."""
         c = self.desc["camera"]
@@ -163,6 +178,95 @@ def _portable_truth(scene_dict: dict[str, Any], scene: Scene) -> tuple[dict[str,
     return truth, copies
 
 
+class VirtualCamera:
+    """The virtual rig's camera: renders a scene as the rig truly is (paper 002 sec. 4 geometry).
+
+    It is also a camera backend of a capture on the real rig (:mod:`facetsynth.rig.session`, rig
+    description ``camera: {backend: virtual, scene, rig, seed, noise}``): there ``hardware()`` returns the
+    controller's state, carriage steps and lit LED, asked through the driver (``POS?``, ``LED?``), so the
+    camera sees what the hardware does, never the capture loop's intentions. Each frame's sensor noise has
+    the stream (seed, LED, steps): a frame taken again after a fault or a resume is the same frame.
+
+    The rig renders with its true geometry: with ``calibration_error`` the LED intensities, positions and
+    camera pose differ from :attr:`camera` and :attr:`intensities`, the calibrated (nominal) values.
+    """
+
+    def __init__(self, scene_path: str | Path, rig: VirtualRig, seed: int = 0, noise: bool = True,
+                 rotation_deg: float = 0.0, hardware: Callable[[], tuple[int, int | None]] | None = None):
+        self.scene_dict = read_yaml(scene_path)
+        self.scene_dict["rotation_deg"] = float(self.scene_dict.get("rotation_deg", 0.0)) + float(rotation_deg)
+        self.scene = Scene.from_dict(self.scene_dict, scene_path)
+        self.scene_path, self.rig, self.seed, self.hardware = Path(scene_path), rig, seed, hardware
+        self.camera = rig.camera(self.scene.size[0])                            # the calibration
+        self.intensities = rig.led_intensities(np.random.default_rng(seed))     # calibrated, per LED
+        self.error = rig.calibration_error()
+        self.seen_by = self.camera if self.error is None else self.error.camera(self.camera)   # the true pose
+        noise_model = rig.desc["noise"]
+        self.read_sigma, self.shot_gain = ((noise_model["read_sigma"], noise_model["shot_gain"]) if noise
+                                           else (0.0, 0.0))
+        self.noise = noise
+        self.supersample = rig.desc.get("supersample", 1)
+        # What each (sub-)pixel sees on the plane; pixels off the sample see black velvet.
+        xy = self.seen_by.pixel_plane_points(self.supersample)
+        self.on_sample = self.scene.on_sample(xy)
+        self.points = np.concatenate([xy[self.on_sample], np.zeros((self.on_sample.sum(), 1))], axis=-1)
+        self.maps = self.scene.parameters(xy[self.on_sample])
+
+    def render(self, led: int | None, steps: int) -> np.ndarray:
+        """True radiance image (H, W, 3) with LED ``led`` lit (None: all dark) and the carriage at ``steps``."""
+        if led is None:
+            return np.zeros((self.camera.height, self.camera.width, 3), np.float32)
+        light, intensity = self.rig.led_position(led, steps), self.intensities[led]
+        if self.error is not None:                                              # the rig as it is
+            light, intensity = light + self.error.led_offset[led], intensity * self.error.intensity_factor[led]
+        return _render_frame(self.points, self.maps, self.on_sample, self.seen_by, light, intensity,
+                             self.supersample)
+
+    def exposures(self, radiance_image: np.ndarray, times: Sequence[float], rng: np.random.Generator,
+                  folder: Path, stem: str) -> list[dict]:
+        """Expose ``radiance_image`` through the bracket ``times``; write ``folder/{stem}_e{k}.exr``, half floats
+        as a camera delivers them; their manifest entries (file names relative to ``folder``)."""
+        saturation = self.rig.desc["exposure"]["saturation"]
+        written = []
+        for k, t in enumerate(times):
+            value = expose(radiance_image, t, saturation, self.read_sigma, self.shot_gain, rng)
+            name = f"{stem}_e{k}.exr"
+            write_exr(folder / name, {"RGB": value}, {"exposure_time": float(t)}, precision="float16")
+            written.append({"file": name, "time": float(t)})
+        return written
+
+    # -- the camera backend (facetsynth.rig.cameras.CameraBackend) ---------------------------------
+
+    def describe(self) -> str:
+        return (f"virtual camera {self.camera.width}x{self.camera.height} of rig {self.rig.desc['name']}, "
+                f"scene {self.scene_path}")
+
+    def capture(self, times: Sequence[float], folder: Path, stem: str) -> list[dict]:
+        """One exposure per time of what the hardware shows now."""
+        steps, led = self.hardware()
+        rng = np.random.default_rng([self.seed, -1 if led is None else led, steps])
+        return self.exposures(self.render(led, steps), times, rng, Path(folder), stem)
+
+    def truth(self, folder: Path) -> dict[str, str]:
+        """Write the truth of a capture into ``folder/truth/`` (the scene, its measured BRDF files, and with
+        ``calibration_error`` the rig's true calibration); the manifest's ``truth`` entry."""
+        truth_dir = Path(folder) / "truth"
+        truth_dir.mkdir(exist_ok=True)
+        truth_scene, brdf_files = _portable_truth(self.scene_dict, self.scene)
+        (truth_dir / "scene.yaml").write_text(yaml.safe_dump(truth_scene, sort_keys=False))
+        if brdf_files:
+            (truth_dir / "brdfs").mkdir(exist_ok=True)
+            for source, name in brdf_files.items():
+                shutil.copyfile(source, truth_dir / "brdfs" / name)
+        if self.error is None:
+            return {"scene": "truth/scene.yaml"}
+        write_json(truth_dir / "calibration.json", self.error.record(self.rig.desc["calibration_error"], self.camera))
+        return {"scene": "truth/scene.yaml", "calibration": "truth/calibration.json"}
+
+    def close(self) -> None:
+        pass
+
+
 def capture(scene_path: str | Path, rig: VirtualRig, out_dir: str | Path, seed: int = 0,
             noise: bool = True, rotation_deg: float = 0.0, threads: int = 1) -> Path:
     """Render a virtual capture of the scene into ``out_dir`` (a capture folder).
@@ -180,58 +284,26 @@ def capture(scene_path: str | Path, rig: VirtualRig, out_dir: str | Path, seed: 
     threads while the scan goes on; each frame's sensor noise has its own
     random stream (seed, frame), so a capture is the same on any number of threads.
     """
-    scene_dict = read_yaml(scene_path)
-    scene_dict["rotation_deg"] = float(scene_dict.get("rotation_deg", 0.0)) + float(rotation_deg)
-    scene = Scene.from_dict(scene_dict, scene_path)
-    rng = np.random.default_rng(seed)
-    camera = rig.camera(scene.size[0])                  # the calibration: what the manifest records
-    intensities = rig.led_intensities(rng)
-    error = rig.calibration_error()
-    seen_by = camera if error is None else error.camera(camera)   # the camera's true pose
-    exposure, sensor_noise = rig.desc["exposure"], rig.desc["noise"]
-    read_sigma, shot_gain = (sensor_noise["read_sigma"], sensor_noise["shot_gain"]) if noise else (0.0, 0.0)
-    supersample = rig.desc.get("supersample", 1)
-
-    # What each (sub-)pixel sees on the plane; pixels off the sample see black velvet.
-    xy = seen_by.pixel_plane_points(supersample)
-    on_sample = scene.on_sample(xy)
-    points = np.concatenate([xy[on_sample], np.zeros((on_sample.sum(), 1))], axis=-1)
-    maps = scene.parameters(xy[on_sample])
-
+    cam = VirtualCamera(scene_path, rig, seed=seed, noise=noise, rotation_deg=rotation_deg)
+    camera, exposure = cam.camera, rig.desc["exposure"]
     out_dir = Path(out_dir)
     with atomic_dir(out_dir) as staging:
         (staging / "frames").mkdir()
-        (staging / "truth").mkdir()
-        truth_scene, brdf_files = _portable_truth(scene_dict, scene)
-        (staging / "truth" / "scene.yaml").write_text(yaml.safe_dump(truth_scene, sort_keys=False))
-        if brdf_files:
-            (staging / "truth" / "brdfs").mkdir()
-            for source, name in brdf_files.items():
-                shutil.copyfile(source, staging / "truth" / "brdfs" / name)
-        if error is not None:
-            write_json(staging / "truth" / "calibration.json", error.record(rig.desc["calibration_error"], camera))
+        truth = cam.truth(staging)
         controller = VirtualController(n_leds=rig.desc["leds"]["count"], max_steps=rig.max_steps,
                                        steps_per_mm=rig.desc["carriage"]["steps_per_mm"])
 
-        def expose_frame(job: tuple[int, np.ndarray, int, int]) -> dict:
-            """Render frame q lit from ``light``, expose its bracket, write its files; its manifest entry."""
-            q, light, led, steps = job
+        def expose_frame(job: tuple[int, int, int]) -> dict:
+            """Render frame q lit by LED ``led`` at ``steps``, expose its bracket, write its files; its manifest entry."""
+            q, led, steps = job
+            true_radiance = cam.render(led, steps)
             rng_frame = np.random.default_rng([seed, q])   # one stream per frame: the same noise on any thread
-            if error is None:
-                true_radiance = _render_frame(points, maps, on_sample, camera, light, intensities[led], supersample)
-            else:                                          # the rig as it is, not as calibrated
-                true_radiance = _render_frame(points, maps, on_sample, seen_by, light + error.led_offset[led],
-                                              intensities[led] * error.intensity_factor[led], supersample)
-            exposures = []
-            for e, t in enumerate(exposure["times"]):
-                value = expose(true_radiance, t, exposure["saturation"], read_sigma, shot_gain, rng_frame)
-                name = f"frames/{q:04d}_e{e}.exr"
-                write_exr(staging / name, {"RGB": value}, {"exposure_time": float(t)}, precision="float16")
-                exposures.append({"file": name, "time": float(t)})
+            exposures = cam.exposures(true_radiance, exposure["times"], rng_frame, staging / "frames", f"{q:04d}")
             truth_name = f"truth/radiance_{q:04d}.exr"
             write_exr(staging / truth_name, {"RGB": true_radiance}, precision="float16")
-            return {"light": {"position": light.tolist(), "intensity": intensities[led].tolist()},
-                    "exposures": exposures, "truth": {"radiance": truth_name}, "led": led, "carriage_steps": steps}
+            return {"light": {"position": rig.led_position(led, steps).tolist(), "intensity": cam.intensities[led].tolist()},
+                    "exposures": [{**e, "file": f"frames/{e['file']}"} for e in exposures],
+                    "truth": {"radiance": truth_name}, "led": led, "carriage_steps": steps}
 
         with virtual_port(controller) as port, RigController.open(port) as driver:
             info = driver.identify()
@@ -247,20 +319,19 @@ def capture(scene_path: str | Path, rig: VirtualRig, out_dir: str | Path, seed: 
                         driver.move_to(steps)
                     driver.led_on(led)
                     state = controller.state()
-                    yield q, rig.led_position(state.lit_led, state.position), int(state.lit_led), int(state.position)
+                    yield q, int(state.lit_led), int(state.position)
 
             frames = map_frames(expose_frame, scan(), threads, "capture", total=len(plan))
             driver.leds_off()
         manifest_io.save(staging / "manifest.json", {
             "version": 1, "units": "m",
-            "sample": {"width": scene.size[0], "height": scene.size[1]},
+            "sample": {"width": cam.scene.size[0], "height": cam.scene.size[1]},
             "camera": {"width": camera.width, "height": camera.height, "K": camera.K.tolist(),
                        "R": camera.R.tolist(), "t": camera.t.tolist(), "distortion": [0.0] * 5},
             "saturation": exposure["saturation"],
-            "noise": {"read_sigma": read_sigma, "shot_gain": shot_gain},
+            "noise": {"read_sigma": cam.read_sigma, "shot_gain": cam.shot_gain},
             "frames": frames,
-            "truth": {"scene": "truth/scene.yaml",
-                      **({} if error is None else {"calibration": "truth/calibration.json"})},
+            "truth": truth,
             "rig": {"name": rig.desc["name"], "firmware": info.firmware, "seed": seed, "noise": noise},
         })
     return out_dir

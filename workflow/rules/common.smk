@@ -113,6 +113,22 @@ def sample_rig(sample):
     return SAMPLE_SHEET[sample].get("rig", config["virtual"]["rig"])
 
 
+def rendered_truth(sample):
+    """{"scene", "rig"} the virtual rig renders a sample's held-out truth from: a virtual sample's, or a rig
+    sample's whose camera backend is the virtual one (a rehearsal of the real rig); None for any other."""
+    row = SAMPLE_SHEET[sample]
+    if row["source"] == "virtual":
+        return {"scene": row["path"], "rig": sample_rig(sample)}
+    if row["source"] == "rig":
+        try:
+            camera = yaml.safe_load(Path(row["path"]).read_text())["camera"]
+        except (OSError, yaml.YAMLError, KeyError, TypeError):
+            return None   # the capture job names the problem
+        if isinstance(camera, dict) and camera.get("backend") == "virtual" and "scene" in camera and "rig" in camera:
+            return {"scene": camera["scene"], "rig": camera["rig"]}
+    return None
+
+
 def source_files(row):
     """The files a sample's capture is made from, beyond its sheet path, as inputs of rule capture: editing
     one re-runs the chain from capture (Snakemake compares modification times). An import: its manifest and
@@ -134,4 +150,13 @@ def source_files(row):
         except (OSError, yaml.YAMLError, KeyError, TypeError):
             listed = []
         return [str(f) for f in listed if f.is_file()]
-    return []
+    return [rig_calibration(row)]
+
+
+def rig_calibration(row):
+    """The calibration file a real rig's description names (built by rule calibrate when it is one of its
+    outputs); the description itself when it cannot be read: the capture job then names the problem."""
+    try:
+        return str(yaml.safe_load(Path(row["path"]).read_text())["calibration"])
+    except (OSError, yaml.YAMLError, KeyError, TypeError):
+        return row["path"]

@@ -10,12 +10,12 @@ wildcard_constraints:
 
 
 def virtual_scene(wildcards):
-    row = SAMPLE_SHEET[wildcards.sample]
-    if row["source"] != "virtual":
+    truth = rendered_truth(wildcards.sample)
+    if truth is None:
         raise WorkflowError(f"validate: sample '{wildcards.sample}' is not virtual, so there is no held-out "
                             "ground truth to render; validate against a held-out capture of your own with "
                             "`facetsynth predict results/SAMPLE/svbrdf HELDOUT/manifest.json OUT` (README)")
-    return {"scene": row["path"], "rig": sample_rig(wildcards.sample)}
+    return truth
 
 
 rule heldout_capture:

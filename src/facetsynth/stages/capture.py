@@ -11,9 +11,10 @@ import numpy as np
 
 from .. import manifest as manifest_io
 from ..errors import InputError
-from ..fileio import atomic_dir, read_frame
+from ..fileio import atomic_dir, read_exposure
 from ..frames import map_frames
 from ..hdr import SensorModel
+from ..rig.session import RigDescription, capture as rig_capture
 from ..virtual_rig import VirtualRig, capture as virtual_capture
 
 log = logging.getLogger(__name__)
@@ -24,8 +25,10 @@ CHECK_THREADS = min(4, os.cpu_count() or 1)
 
 def run(source: str, path: str | Path, out_dir: str | Path, rig: str | Path, seed: int, noise: bool,
         rotation_deg: float = 0.0, threads: int = 1) -> None:
-    """Produce the capture folder ``out_dir`` (``manifest.json`` + frames) for one sample (a virtual scene
-    turned by ``rotation_deg`` on the rig, its frames rendered on ``threads`` threads)."""
+    """Produce the capture folder ``out_dir`` (``manifest.json`` + frames) for one sample: a virtual scene
+    turned by ``rotation_deg`` on the virtual rig ``rig``, its frames rendered on ``threads`` threads; a
+    capture folder made elsewhere (``import``); or the real rig of the description ``path``
+    (:mod:`facetsynth.rig.session`: resumes an interrupted capture)."""
     if source == "virtual":
         log.info("virtual capture of scene %s turned by %g deg with rig %s (seed %d, noise %s)", path, rotation_deg,
                  rig, seed, noise)
@@ -34,8 +37,7 @@ def run(source: str, path: str | Path, out_dir: str | Path, rig: str | Path, see
     elif source == "import":
         import_capture(path, out_dir)
     else:
-        raise InputError(path, "source 'rig' needs the real-rig camera backend, which is not built yet "
-                               "(DESIGN.md sec. 7); capture with your own software and use source 'import'")
+        rig_capture(RigDescription.load(path), out_dir)
 
 
 def check_capture(path: str | Path) -> dict:
@@ -50,9 +52,9 @@ def inspect_capture(path: str | Path) -> tuple[dict, list[str]]:
     """Validate a capture folder as the pipeline will read it: the loaded manifest and the warnings.
 
     The manifest goes through :func:`facetsynth.manifest.load` (schema and meaning); every exposure's
-    pixels are read with the reader the ``hdr`` stage uses (:func:`facetsynth.fileio.read_frame`), on
-    threads. Errors (InputError, one line naming the file): a file that is not a readable EXR with
-    R, G, B of the camera's size; a NaN or Inf pixel (``hdr`` refuses them); every frame dark (nothing
+    pixels are read with the reader the ``hdr`` stage uses (:func:`facetsynth.fileio.read_exposure`: an
+    EXR's values, an 8-bit image's codes), on threads. Errors (InputError, one line naming the file): a
+    file that is not a readable EXR or 8-bit image with R, G, B of the camera's size; a NaN or Inf pixel (``hdr`` refuses them); every frame dark (nothing
     measured). Warnings, as the data still merge and fit: negative values (``hdr`` clips them to 0; a
     few are read noise around a subtracted black level, many say the black level is wrong) and dark
     frames (a light that did not fire, or lights nothing the camera sees; the other frames still fit).
@@ -66,6 +68,7 @@ def inspect_capture(path: str | Path) -> tuple[dict, list[str]]:
                            manifest["frames"], CHECK_THREADS, "check")
     exposures = [stats for frame in per_frame for stats in frame]
     _refuse_nonfinite(exposures)
+    _refuse_mixed_kinds(exposures, manifest["_dir"])
     warnings = []
     negative = [s for s in exposures if s.negative]
     if negative:
@@ -87,6 +90,7 @@ class ExposureStats:
     """What :func:`inspect_capture` found in one exposure file's pixels."""
 
     file: str
+    bits: int | None                         # 8: an 8-bit image's codes; None: an EXR's linear values
     nonfinite: int                           # pixels with a NaN or Inf channel
     first_nonfinite: tuple[int, int] | None  # (row, col) of the first
     negative: int                            # negative values (channels) of finite pixels
@@ -97,7 +101,7 @@ def _read_exposure(file: str, shape: tuple[int, int, int], floor: float) -> Expo
     """Read one exposure as ``hdr`` does; count its non-finite pixels and negative values, and whether some
     value is above the noise ``floor``."""
     try:
-        rgb, _ = read_frame(file, require_finite=False)
+        rgb, bits = read_exposure(file)
     except InputError as exc:
         raise InputError(file, f"unreadable frame: {exc.problem}") from None
     if rgb.shape != shape:
@@ -106,11 +110,21 @@ def _read_exposure(file: str, shape: tuple[int, int, int], floor: float) -> Expo
     lowest, highest = float(rgb.min()), float(rgb.max())   # NaN if any pixel is NaN: the fast path is all finite
     if np.isfinite(lowest) and np.isfinite(highest):
         negative = 0 if lowest >= 0 else int((rgb < 0).sum())
-        return ExposureStats(file=file, nonfinite=0, first_nonfinite=None, negative=negative, lit=highest > floor)
+        return ExposureStats(file=file, bits=bits, nonfinite=0, first_nonfinite=None, negative=negative, lit=highest > floor)
     finite = np.isfinite(rgb).all(axis=-1)
     bad = np.argwhere(~finite)
-    return ExposureStats(file=file, nonfinite=len(bad), first_nonfinite=(int(bad[0][0]), int(bad[0][1])),
+    return ExposureStats(file=file, bits=bits, nonfinite=len(bad), first_nonfinite=(int(bad[0][0]), int(bad[0][1])),
                          negative=int((rgb[finite] < 0).sum()), lit=bool((rgb[finite] > floor).any()))
+
+
+def _refuse_mixed_kinds(exposures: list[ExposureStats], folder: str) -> None:
+    """InputError when some exposures are EXR and others 8-bit images (``hdr`` merges one kind), naming one of each."""
+    first = {}
+    for s in exposures:
+        first.setdefault(s.bits, s.file)
+    if len(first) > 1:
+        raise InputError(Path(folder) / "manifest.json", f"exposures mix EXR ({first[None]}) and 8-bit images "
+                                                         f"({first[8]}): convert them to one kind")
 
 
 def _refuse_nonfinite(exposures: list[ExposureStats]) -> None:
