@@ -34,7 +34,7 @@ def test_stencil_edit_rotates_an_axis_and_swaps_colours(tmp_path, capsys):
     edited = model_from_json(json.loads((tmp_path / "edited/stencil.json").read_text()))
     assert abs(np.rad2deg(edited.modes[0].phi_a) - 50) < 1e-9
     assert edited.modes[0].m == model.modes[1].m and edited.modes[1].m == model.modes[0].m
-    assert edited.m_bg == model.modes[0].m          # the background follows the bottom mode's colour (eq. 7)
+    assert edited.m_bg == model.m_bg                # the background keeps its own fitted colour
 
 
 def test_stencil_commands_name_the_file_on_bad_input(tmp_path, capsys):

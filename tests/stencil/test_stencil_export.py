@@ -49,12 +49,15 @@ def run_shader(text, L, V_):
     return np.asarray(ns["__ret"], float)
 
 
-def _model(n, retro=False):
+def _model(n, retro=False, extended=False):
     cols = [(0.2, 0.3, 0.9), (0.9, 0.2, 0.1), (0.1, 0.8, 0.2)]
     modes = tuple(Mo.Mode(np.deg2rad(p), w, 0.4, 0.04, 0.05, 1.0, 6.0, c, retro=(retro and i == 1))
                   for i, (p, w, c) in enumerate(zip((20, 110, 60), (0.75, 0.65, 0.6), cols[:n])))
+    # extended: the fit's second lobe, highlight colours and background elevation scaling (issue 18)
+    more = dict(k2=2.0, alpha_s2=8.0, a_s2=0.3, b_s2=0.02, m_s=(1.0, 0.9, 0.8), m_s2=(0.5, 1.0, 1.5),
+                a_r=1.1, b_r=-0.05) if extended else {}
     return Mo.StencilModel(modes, tuple([0.3, 0.1][: max(n - 1, 0)]), 0.05,
-                           modes[-1].m if modes else (0.1, 0.1, 0.1), 4.0, 60.0, 0.4, 0.04)
+                           modes[-1].m if modes else (0.1, 0.1, 0.1), 4.0, 60.0, 0.4, 0.04, **more)
 
 
 def test_shader_structure():
@@ -71,9 +74,11 @@ def test_shader_structure():
     assert "20.0" in t.split("phi_a0")[1].split("\n")[0]
 
 
-@pytest.mark.parametrize("n,retro", [(0, False), (1, False), (2, False), (3, False), (2, True)])
-def test_shader_transliteration_matches_python(n, retro):
-    m = _model(n, retro)
+@pytest.mark.parametrize("n,retro,extended", [(0, False, False), (1, False, False), (2, False, False),
+                                              (3, False, False), (2, True, False), (0, False, True),
+                                              (2, False, True)])
+def test_shader_transliteration_matches_python(n, retro, extended):
+    m = _model(n, retro, extended)
     text = to_brdf_explorer(m)
     rng = np.random.default_rng(n)
     wi = grid.sph_to_dir(np.arccos(rng.uniform(0.05, 1, 25)), rng.uniform(0, 2 * np.pi, 25))

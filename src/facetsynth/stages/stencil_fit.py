@@ -6,11 +6,18 @@ point; the SVBRDF at that point is evaluated on the UTIA grid and the stencil
 model is fitted to it directly (paper 000 sec. 3), with the number of
 anisotropy modes chosen from the data.
 
-For virtual samples the fit is scored against the scene's truth: a single
-anisotropic microfacet lobe (alpha_u != alpha_v) is one anisotropy mode with
-phi_a = 90 deg - phi_frame (mod 180), since the tight tangent
-[cos phi_frame, sin phi_frame, 0] is the stencil axis U(phi_a) =
-[sin phi_a, cos phi_a, 0] (paper 000 eq. 2); an isotropic lobe has no mode.
+Beside it the two-lobe Kurt et al. 2010 baseline (paper 000 sec. 4.2,
+:func:`facetsynth.stencil.kurt.fit_kurt`) is fitted to the same UTIA-grid
+samples; both are scored (Delta E, RMSE, PSNR, SSIM) against the SVBRDF they
+were fitted to, with both fit times.
+
+For virtual samples both are also scored against the scene's true BRDF at the
+representative point (sampled on the same grid), as is the fitted SVBRDF
+itself, and the axes are checked: a single anisotropic microfacet lobe
+(alpha_u != alpha_v) is one anisotropy mode with phi_a = 90 deg - phi_frame
+(mod 180), since the tight tangent [cos phi_frame, sin phi_frame, 0] is the
+stencil axis U(phi_a) = [sin phi_a, cos phi_a, 0] (paper 000 eq. 2); an
+isotropic lobe has no mode.
 """
 
 from __future__ import annotations
@@ -24,10 +31,12 @@ from tqdm import tqdm
 
 from ..errors import InputError
 from ..fileio import atomic_dir, write_json
+from ..scene import MaterialMaps
 from ..svbrdf import SVBRDF
 from ..stencil import fit, model_to_json, to_brdf_explorer
 from ..stencil.fit import axis_error_deg
 from ..stencil.grid import sample_utia
+from ..stencil.kurt import fit_kurt, kurt_evaluate_utia
 from ..stencil.model import evaluate_utia
 from ..stencil.scores import score_brdf
 from .common import RectifiedCapture
@@ -41,9 +50,21 @@ def true_axes_deg(alpha_u: np.ndarray, alpha_v: np.ndarray, phi_frame: np.ndarra
             for au, av, pf in zip(alpha_u, alpha_v, phi_frame)]
 
 
+_SCORES = ("delta_e", "rmse", "psnr_db", "ssim")
+
+
+def _scores(reference, test):
+    sc = score_brdf(reference, test)
+    return {k: float(sc[k]) for k in _SCORES}
+
+
 def fit_clusters(model: SVBRDF, representatives: np.ndarray, members: np.ndarray,
-                 truth_axes: list[list[float]] | None = None) -> tuple[list[dict], list[str]]:
-    """Fit a stencil model at each cluster's representative point -> (cluster records, BRDF Explorer shaders)."""
+                 truth_axes: list[list[float]] | None = None,
+                 truth: MaterialMaps | None = None, kurt: bool = True) -> tuple[list[dict], list[str]]:
+    """Fit a stencil model and the Kurt baseline at each cluster's representative point
+    -> (cluster records, BRDF Explorer shaders).  ``truth``: the true maps at the
+    representatives (virtual samples), index k for cluster k.  ``kurt=False`` skips the
+    baseline (1-8 s per cluster; the stage always fits it)."""
     points = model.plane.points3d().reshape(-1, 3)
     clusters, shaders = [], []
     for k, point in enumerate(tqdm(representatives, desc="stencil_fit", unit="cluster")):
@@ -51,12 +72,25 @@ def fit_clusters(model: SVBRDF, representatives: np.ndarray, members: np.ndarray
         t0 = time.perf_counter()
         stencil = fit(brdf)
         seconds = time.perf_counter() - t0
-        scores = score_brdf(brdf, evaluate_utia(stencil))
+        stencil_brdf = evaluate_utia(stencil)
+        scores = _scores(brdf, stencil_brdf)
         scores["fit_seconds"] = seconds
         entry = {"cluster": k, "representative": int(point), "xy_m": points[point, :2].tolist(),
                  "points": int(members[k]), "stencil": model_to_json(stencil, scores)}
+        if kurt:
+            kurt_model, kurt_seconds = fit_kurt(brdf)
+            kurt_brdf = kurt_evaluate_utia(kurt_model)
+            entry["kurt"] = {"scores": dict(_scores(brdf, kurt_brdf), fit_seconds=float(kurt_seconds)),
+                             "kd": list(kurt_model.kd), "ks": [list(v) for v in kurt_model.ks],
+                             "lobes_f0_mx_my_alpha": [list(v) for v in kurt_model.lobes]}
         if truth_axes is not None:
             entry["true_phi_a_deg"] = truth_axes[k]
+        if truth is not None:
+            true_k = truth.take(np.array([k]))
+            true_brdf = sample_utia(lambda wi, wo: np.broadcast_to(true_k.rho(wi, wo), wi.shape))
+            entry["vs_truth"] = {"stencil": _scores(true_brdf, stencil_brdf), "svbrdf": _scores(true_brdf, brdf)}
+            if kurt:
+                entry["vs_truth"]["kurt"] = _scores(true_brdf, kurt_brdf)
         clusters.append(entry)
         shaders.append(to_brdf_explorer(stencil))
     return clusters, shaders
@@ -73,7 +107,7 @@ def run(svbrdf_dir: str | Path, labels_path: str | Path, geometry: str | Path, o
     truth = RectifiedCapture.load(geometry).truth()
     truth_axes = None if truth is None else true_axes_deg(truth.alpha_u[reps], truth.alpha_v[reps],
                                                           truth.phi_frame[reps])
-    clusters, shaders = fit_clusters(model, reps, members, truth_axes)
+    clusters, shaders = fit_clusters(model, reps, members, truth_axes, None if truth is None else truth.take(reps))
     with atomic_dir(out_dir) as tmp:
         (tmp / "shaders").mkdir(exist_ok=True)
         for k, shader in enumerate(shaders):
@@ -84,16 +118,31 @@ def run(svbrdf_dir: str | Path, labels_path: str | Path, geometry: str | Path, o
     write_json(metrics_out, metrics)
 
 
+def _median(values):
+    return float(np.median(values)) if len(values) else None
+
+
 def cluster_metrics(clusters: list[dict], ground_truth: bool) -> dict:
-    """Median scores over clusters, the mode-count histogram and, with truth, axis accuracy."""
+    """Median scores over clusters for the stencil model (``delta_e_median`` ...) and the Kurt
+    baseline (``kurt_delta_e_median`` ...) against the fitted SVBRDF, both fit times, the share of
+    clusters where the stencil's Delta E is at most Kurt's, the mode-count histogram and, with truth,
+    both models' (and the SVBRDF's) median scores against the true BRDF and the axis accuracy."""
     scores = [c["stencil"]["scores"] for c in clusters]
+    kurt = [c["kurt"]["scores"] for c in clusters if "kurt" in c]
     modes = [c["stencil"]["n_modes"] for c in clusters]
-    seconds = [s["fit_seconds"] for s in scores]
     metrics = {"ground_truth": ground_truth, "clusters": len(clusters),
                "mode_counts": {str(n): modes.count(n) for n in sorted(set(modes))},
-               "fit_seconds_median": float(np.median(seconds)) if seconds else None}
-    for key in ("delta_e", "rmse", "psnr_db", "ssim"):
-        metrics[f"{key}_median"] = float(np.median([s[key] for s in scores])) if scores else None
+               "fit_seconds_median": _median([s["fit_seconds"] for s in scores]),
+               "kurt_fit_seconds_median": _median([s["fit_seconds"] for s in kurt])}
+    for key in _SCORES:
+        metrics[f"{key}_median"] = _median([s[key] for s in scores])
+        metrics[f"kurt_{key}_median"] = _median([s[key] for s in kurt])
+    at_most = [s["delta_e"] <= q["delta_e"] for s, q in zip(scores, kurt)]
+    metrics["stencil_delta_e_at_most_kurt"] = float(np.mean(at_most)) if kurt and len(kurt) == len(scores) else None
+    truths = [c["vs_truth"] for c in clusters if "vs_truth" in c]
+    if truths:
+        metrics["vs_truth"] = {who: {f"{key}_median": _median([t[who][key] for t in truths if who in t])
+                                     for key in _SCORES} for who in ("stencil", "kurt", "svbrdf")}
     if ground_truth and clusters:
         right = [c["stencil"]["n_modes"] == len(c["true_phi_a_deg"]) for c in clusters]
         errors = [axis_error_deg([m["phi_a_deg"] for m in c["stencil"]["modes"]], c["true_phi_a_deg"])

@@ -44,10 +44,7 @@ def swap_mode_colours(model, i, j, channels=(0, 1, 2)):
     mi, mj = list(model.modes[i].m), list(model.modes[j].m)
     for c in channels:
         mi[c], mj[c] = mj[c], mi[c]
-    out = _with_mode(_with_mode(model, i, m=tuple(mi)), j, m=tuple(mj))
-    if len(model.modes) - 1 in (i, j):  # the background uses the bottom mode's colour (eq. 7)
-        out = replace(out, m_bg=out.modes[-1].m)
-    return out
+    return _with_mode(_with_mode(model, i, m=tuple(mi)), j, m=tuple(mj))
 
 
 def set_mode_colour(model, mode, m):
@@ -56,5 +53,4 @@ def set_mode_colour(model, mode, m):
     m = tuple(float(v) for v in m)
     if len(m) != 3 or min(m) < 0:
         raise ValueError("m must be three non-negative values")
-    out = _with_mode(model, mode, m=m)
-    return replace(out, m_bg=out.modes[-1].m) if mode == len(model.modes) - 1 else out
+    return _with_mode(model, mode, m=m)

@@ -43,7 +43,11 @@ def model_to_json(model, scores=None):
            "n_modes": len(modes), "modes": modes, "beta": [_f(b) for b in model.beta],
            "r": _f(model.r), "m_bg": [_f(v) for v in model.m_bg], "k": _f(model.k),
            "alpha_s": _f(model.alpha_s), "a_s": _f(model.a_s), "b_s": _f(model.b_s),
-           "dw_ratio": _f(model.dw_ratio)}
+           "dw_ratio": _f(model.dw_ratio), "k2": _f(model.k2), "alpha_s2": _f(model.alpha_s2),
+           "a_s2": _f(model.a_s2), "b_s2": _f(model.b_s2),
+           "m_s": None if model.m_s is None else [_f(v) for v in model.m_s],
+           "m_s2": None if model.m_s2 is None else [_f(v) for v in model.m_s2],
+           "a_r": _f(model.a_r), "b_r": _f(model.b_r)}
     sc = dict(scores or {})
     out["scores"] = {k: (None if sc.get(k) is None else _f(sc[k])) for k in _SCORE_KEYS}
     for k, v in sc.items():
@@ -98,9 +102,11 @@ def check_params(d):
 
     Structure: an object with ``modes`` (a list of objects), ``beta`` (one
     value per mode but the last), ``r``, ``m_bg`` (3), ``k``, ``alpha_s``,
-    ``a_s``, ``b_s``, ``dw_ratio``; every number finite. Ranges are those the
-    fit produces and the model needs: 0 < w < 1, beta in [0, 1], colours m and
-    m_bg, ks, k, alpha, alpha_s and dw_ratio >= 0.
+    ``a_s``, ``b_s``, ``dw_ratio``; optional (absent: the paper's eqs. 7 and 10)
+    ``k2``, ``alpha_s2``, ``a_s2``, ``b_s2``, ``m_s``, ``m_s2`` (3 or null),
+    ``a_r``, ``b_r``; every number finite. Ranges are those the fit produces and
+    the model needs: 0 < w < 1, beta in [0, 1], colours m, m_bg, m_s, m_s2, ks,
+    k, k2, alpha, alpha_s, alpha_s2 and dw_ratio >= 0.
     """
     if not isinstance(d, dict):
         raise ValueError(f"expected a JSON object, found {type(d).__name__}")
@@ -125,6 +131,13 @@ def check_params(d):
         _key(d, key)
     for key in ("k", "alpha_s", "dw_ratio"):
         _key(d, key, lo=0.0)
+    for key, nonneg in (("k2", True), ("alpha_s2", True), ("a_s2", False), ("b_s2", False),
+                        ("a_r", False), ("b_r", False)):
+        if key in d:
+            _key(d, key, lo=0.0 if nonneg else -np.inf)
+    for key in ("m_s", "m_s2"):
+        if d.get(key) is not None:
+            _key(d, key, n=3, lo=0.0)
 
 
 def model_from_json(d, path=None):
@@ -140,8 +153,10 @@ def model_from_json(d, path=None):
     modes = tuple(Mode(phi_a=float(np.deg2rad(m["phi_a_deg"])), w=m["w"], a=m["a"], b=m["b"], kd=m["kd"],
                        ks=m["ks"], alpha=m["alpha"], m=tuple(m["m"]), retro=bool(m.get("retro", False)))
                   for m in d["modes"])
+    extra = {k: d[k] for k in ("k2", "alpha_s2", "a_s2", "b_s2", "a_r", "b_r") if k in d}
+    extra.update({k: tuple(d[k]) for k in ("m_s", "m_s2") if d.get(k) is not None})
     return StencilModel(modes=modes, beta=tuple(d["beta"]), r=d["r"], m_bg=tuple(d["m_bg"]), k=d["k"],
-                        alpha_s=d["alpha_s"], a_s=d["a_s"], b_s=d["b_s"], dw_ratio=d["dw_ratio"])
+                        alpha_s=d["alpha_s"], a_s=d["a_s"], b_s=d["b_s"], dw_ratio=d["dw_ratio"], **extra)
 
 
 def _g(x):
@@ -188,21 +203,36 @@ def to_brdf_explorer(model):
         ]
     par("dw", model.dw_ratio, 0.01, 0.5)
     par("r", model.r, 0.0, 4.0)
+    par("a_r", model.a_r, -1.0, 2.0)
+    par("b_r", model.b_r, -1.0, 2.0)
     for c, v in zip("rgb", model.m_bg):
         par(f"mbg{c}", v, 0.0, 4.0)
     for j, b in enumerate(model.beta):
         par(f"beta{j}", b, 0.0, 1.0)
-    par("k", model.k, 0.0, max(10.0, model.k))
-    par("alpha_s", model.alpha_s, 0.0, 1000.0)
-    par("a_s", model.a_s, -1.0, 2.0)
-    par("b_s", model.b_s, -1.0, 2.0)
-    body.append(f"vec3 P{n} = r * vec3(mbgr, mbgg, mbgb);")
+    for sfx, (k, al, a, b) in (("", (model.k, model.alpha_s, model.a_s, model.b_s)),
+                               ("2", (model.k2, model.alpha_s2, model.a_s2, model.b_s2))):
+        par(f"k{sfx}", k, 0.0, max(10.0, k))
+        par(f"alpha_s{sfx}", al, 0.0, 1000.0)
+        par(f"a_s{sfx}", a, -1.0, 2.0)
+        par(f"b_s{sfx}", b, -1.0, 2.0)
+    coloured = model.m_s is not None
+    if coloured:
+        for nm, col in (("ms", model.m_s), ("ms2", model.m_s if model.m_s2 is None else model.m_s2)):
+            for c, v in zip("rgb", col):
+                par(f"{nm}{c}", v, 0.0, 4.0)
+    body.append(f"vec3 P{n} = r * max(a_r + b_r / cp, 0.0) * vec3(mbgr, mbgg, mbgb);")
     for j in range(n - 1, -1, -1):
         top = f"T{j}" if j == n - 1 else f"((1.0 - beta{j}) * T{j} + beta{j} * T{j + 1})"
         body.append(f"vec3 P{j} = (1.0 - M{j}) * P{j + 1} + M{j} * {top};")
     body += ["vec3 Hs = normalize(wi + wo);",
-             "float S = max(1.0, k * pow(clamp(Hs.z, 0.0, 1.0), alpha_s) * max(a_s + b_s / cp, 0.0));",
-             "return vis * max(P0 * S, vec3(0.0));"]
+             "float l1 = k * pow(clamp(Hs.z, 0.0, 1.0), alpha_s) * max(a_s + b_s / cp, 0.0);",
+             "float l2 = k2 * pow(clamp(Hs.z, 0.0, 1.0), alpha_s2) * max(a_s2 + b_s2 / cp, 0.0);",
+             "float S = max(1.0, l1 + l2);"]
+    if coloured:
+        body += ["float boost = (S - 1.0) * dot(P0, vec3(0.2126, 0.7152, 0.0722)) / max(l1 + l2, 1e-30);",
+                 "return vis * max(P0 + boost * (l1 * vec3(msr, msg, msb) + l2 * vec3(ms2r, ms2g, ms2b)), vec3(0.0));"]
+    else:
+        body.append("return vis * max(P0 * S, vec3(0.0));")
     lines = ["analytic", "",
              "# Adaptive highlight stencils BRDF (Filip, Havlicek, Vavra), fitted by facetsynth.stencil.",
              f"# {n} anisotropy mode(s); phi_a in degrees, U = [sin phi_a, cos phi_a, 0] in the (X, Y) frame.",

@@ -14,7 +14,12 @@ Steps (paper 000 sec. 3.1 letters in brackets):
    refine it by a parabola through the three neighbouring candidates, subtract
    the projection, repeat.  **Mode-count criterion:** a mode is accepted while
    rho >= ``RHO_MIN`` (0.10), at most ``MAX_MODES`` (4), candidates within
-   ``SEPARATION_DEG`` (10 deg) of an accepted axis are skipped.
+   ``SEPARATION_DEG`` (20 deg) of an accepted axis are skipped.  Marginal
+   candidates (``RHO_CAND`` 0.05 <= rho < 0.10), strongest first, are kept
+   only if the whole model refitted with them has a lower BIC,
+   2 n log(mean CIELAB error) + 11 log n per mode (a Laplace likelihood of the
+   per-sample error Delta E averages; n = 82944 samples of the grid): model
+   selection from the data's fit residual.
 2. [B] Width w of each mode from the data: the residual R binned over F of
    the mode (other modes' ridges and the specular neighbourhood excluded);
    w = the F below which the binned ridge excess drops under 10 % of its
@@ -28,12 +33,18 @@ Steps (paper 000 sec. 3.1 letters in brackets):
    the alpha with the least squared error wins (variable projection on a grid,
    no iterative optimiser).  a, b are normalised so the ridge scale peaks at 1.
 4. [D] Colour m_j: linear least squares of each channel on L_j (eq. 5).
-5. [E] Background r (eq. 7): linear scale between the darkest sample of
-   each elevation pair and m of the bottom mode.  beta_j (eq. 8) by
-   closed-form least squares (B is linear in each beta), clipped to [0, 1].
-6. [F] Specular (eq. 10): a_s, b_s (= a_0, b_0 with modes), and k, alpha_s
-   from a log-linear least-squares fit of the ratio data / model-without-
-   specular where it exceeds 1.
+5. [E] Background (eq. 7): one level per elevation pair -- the darkest
+   sample (the paper's orange dots) with modes, the median of the
+   non-specular samples without -- projected on m_bg (the darkest samples'
+   mean colour with modes, the non-specular median colour without) and
+   fitted by eq. 3's form r (a_r + b_r / cp), a_r + b_r = 1.  beta_j (eq. 8)
+   by closed-form least squares (B_S is linear in each beta), clipped to [0, 1].
+6. [F] Specular (eq. 10) with two lobes k H_z^alpha (a + b / cp), fitted to
+   the ratio data / model-without-specular: variable projection on an alpha
+   grid (1 .. 65536), A, B >= 0 by weighted linear least squares per alpha
+   (cube-root residual), one lobe, then the other given it, alternating
+   twice; each lobe's highlight colour by linear least squares (eq. 5's
+   colour fit applied to the highlight).
 """
 
 from __future__ import annotations
@@ -45,12 +56,17 @@ from pathlib import Path
 import numpy as np
 
 from . import grid
-from .model import (COS_FLOOR, Mode, StencilModel, elevation_scale, half_vector, merge_modes,
-                    mode_colour, mode_luminance, specular_factor, stencil, support_mask)
+from .model import (COS_FLOOR, Mode, StencilModel, apply_specular, elevation_scale, half_vector, highlight_basis,
+                    merge_modes, mode_colour, mode_luminance, stencil, support_mask)
 
-__all__ = ["RHO_MIN", "MAX_MODES", "SEPARATION_DEG", "axis_error_deg", "detect_axes", "fit", "fit_file"]
+__all__ = ["RHO_MIN", "RHO_CAND", "MODE_PARAMS", "MAX_MODES", "SEPARATION_DEG", "axis_error_deg", "detect_axes", "fit",
+           "fit_file"]
 
 RHO_MIN = 0.10
+# candidates with RHO_CAND <= rho < RHO_MIN are kept only if they lower the fit's BIC
+RHO_CAND = 0.05
+# parameters one mode adds (phi_a, w, a, b, kd, ks, alpha, m_rgb, beta) -- the BIC penalty per mode
+MODE_PARAMS = 11
 MAX_MODES = 4
 SEPARATION_DEG = 20.0
 KERNEL_POWER = 20.0
@@ -59,6 +75,11 @@ SPEC_EXCLUDE = np.cos(np.deg2rad(25.0))
 _CAND = np.deg2rad(np.arange(0.0, 180.0, 1.0))
 _ALPHAS = np.geomspace(0.25, 256.0, 22)
 _TOP = (4, 5)  # theta indices of 60 and 75 deg
+_SPEC_ALPHAS = 2.0 ** np.arange(17)  # 1 .. 65536; H_z^alpha by repeated squaring
+# the specular fit uses every SPEC_STRIDE-th azimuth of both directions (speed; mirror pairs kept)
+SPEC_STRIDE = 2
+_SUBSAMPLE = np.zeros(grid.SHAPE[1:], bool)
+_SUBSAMPLE[:, ::SPEC_STRIDE, :, ::SPEC_STRIDE] = True
 
 
 @lru_cache(maxsize=1)
@@ -105,8 +126,8 @@ def axis_error_deg(found, truth):
     return max((abs((f - t + 90.0) % 180.0 - 90.0) for f, t in zip(sorted(found), sorted(truth))), default=0.0)
 
 
-def detect_axes(Y):
-    """Anisotropy axes phi_a (radians, [0, pi)) and correlations rho, strongest first (step 1)."""
+def detect_axes(Y, rho_min=RHO_MIN):
+    """Anisotropy axes phi_a (radians, [0, pi)) and correlations rho >= rho_min, strongest first (step 1)."""
     g = _geometry()
     Yt = np.cbrt(np.maximum(Y[np.ix_(_TOP, range(48), _TOP, range(48))], 0.0))
     Z = _rotate(Yt, g["pv"])
@@ -121,7 +142,7 @@ def detect_axes(Y):
         rho = (K @ R) / (Kn * norm)
         rho_b = np.where(blocked, -np.inf, rho)
         j = int(np.argmax(rho_b))
-        if rho_b[j] < RHO_MIN:
+        if rho_b[j] < rho_min:
             break
         y0, y1, y2 = rho[(j - 1) % len(_CAND)], rho[j], rho[(j + 1) % len(_CAND)]
         den = y0 - 2 * y1 + y2
@@ -217,9 +238,11 @@ def _fit_mode(phi_a, Y, R, F, W, others, g):
         smax = max(a + b / pcp.min(), a + b, 1e-12)
         a, b = a / smax, b / smax
         Ea = np.power(np.maximum(Fs * elevation_scale(a, b, cps), 0.0), alpha)
-        A = np.stack([np.ones_like(Ea), Ea], 1) * np.sqrt(ws)[:, None]
-        coef, *_ = np.linalg.lstsq(A, ys * np.sqrt(ws), rcond=None)
-        kd, ks = coef
+        # weighted linear least squares of kd + ks Ea (2x2 normal equations)
+        s0, s1, s2 = ws.sum(), ws @ Ea, ws @ (Ea * Ea)
+        r0, r1 = ws @ ys, ws @ (Ea * ys)
+        det = s0 * s2 - s1 * s1
+        kd, ks = ((s2 * r0 - s1 * r1) / det, (s0 * r1 - s1 * r0) / det) if det > 1e-12 * s0 * s2 else (r0 / s0, 0.0)
         if ks < 0:
             kd, ks = float(np.average(ys, weights=ws)), 0.0
         err = np.sum(ws * (kd + ks * Ea - ys) ** 2)
@@ -229,28 +252,100 @@ def _fit_mode(phi_a, Y, R, F, W, others, g):
     return Mode(float(phi_a), w, float(a), float(b), float(kd), float(ks), float(alpha), (1.0, 1.0, 1.0)), M
 
 
-def _fit_specular(Ydata, Bl, hz, cp, a_s, b_s):
-    """k, alpha_s of eq. 10 by log-linear least squares on samples where data / model > 1."""
-    s = elevation_scale(a_s, b_s, cp)
-    q = Ydata / np.maximum(Bl, 1e-12)
-    sel = (q > 1.02) & (s > 1e-6) & (hz > SPEC_EXCLUDE) & (Bl > 1e-9)
+def _nonneg_pair(X, t, w):
+    """argmin over c >= 0 of sum w (X c - t)^2 for X ``(n, 2)``."""
+    Xw = X * w[:, None]
+    return _nonneg_normal(X.T @ Xw, Xw.T @ t)
+
+
+def _nonneg_normal(G, r):
+    """argmin over c >= 0 of c.G.c - 2 c.r (G 2x2): the normal equations, else the better single column."""
+    det = G[0, 0] * G[1, 1] - G[0, 1] ** 2
+    if det > 1e-12 * G[0, 0] * G[1, 1]:
+        c = np.array([G[1, 1] * r[0] - G[0, 1] * r[1], G[0, 0] * r[1] - G[0, 1] * r[0]]) / det
+        if c.min() >= 0:
+            return c
+    one = [np.array([max(r[0], 0.0) / max(G[0, 0], 1e-300), 0.0]),
+           np.array([0.0, max(r[1], 0.0) / max(G[1, 1], 1e-300)])]
+    return min(one, key=lambda c: c @ G @ c - 2 * c @ r)
+
+
+def _fit_lobe(t, base, hz, inv_cp, w):
+    """One lobe H_z^alpha (A + B / cp) of eq. 10 added to ``base`` to fit the ratio t = data / model.
+
+    Variable projection on the alpha grid: per alpha, A, B >= 0 by weighted linear
+    least squares (the samples are those above the model, where eq. 10's max is
+    the lobe; weights t^(-4/3): the cube-root residual linearised, cf. CIELAB L*),
+    scored by the cube-root error of max(1, base + lobe).  Returns (err, alpha, A, B).
+    """
+    best = (np.inf, 1.0, 0.0, 0.0)
+    ct = np.cbrt(t)
+    ha = np.array(hz, float)
+    for alpha in _SPEC_ALPHAS:  # 17 closed-form candidates, not samples
+        X = np.stack([ha, ha * inv_cp], 1)
+        c = _nonneg_pair(X, t - base, w)
+        err = float(np.sum((np.cbrt(np.maximum(base + X @ c, 1.0)) - ct) ** 2))
+        if err < best[0]:
+            best = (err, float(alpha), float(c[0]), float(c[1]))
+        ha = ha * ha                                   # H_z^(2 alpha)
+    return best
+
+
+def _lobe_params(alpha, A, B):
+    """(k, alpha, a, b) with a, b scaled so max(a + b / cp) = 1 over the grid (k carries the scale)."""
+    smax = A + B / COS_FLOOR ** 2
+    return (float(smax), float(alpha), float(A / smax), float(B / smax)) if smax > 0 else (0.0, 1.0, 1.0, 0.0)
+
+
+def _fit_specular(rgb, B, g):
+    """Eq. 10 from the data: two lobes (k, alpha_s, a_s, b_s) and their highlight colours m_s, m_s2.
+
+    The ratio t = Y / Y(B) where it exceeds 1.02 (every 2nd azimuth of both
+    directions) is fitted by one lobe, then a second lobe
+    on the rest, then each again given the other (each by :func:`_fit_lobe`).
+    m_s, m_s2: per-channel non-negative linear least squares of data - B on the
+    two lobes' shares of the boost (S - 1) Y(B) (:func:`highlight_basis`), where
+    S > 1: eq. 5's colour fit applied to the highlight.
+    """
+    Y, YB = rgb @ grid.LUMA, B @ grid.LUMA
+    sel = (Y > 1.02 * YB) & (YB > 1e-12 * max(Y.max(), 1e-300)) & _SUBSAMPLE
     if sel.sum() < 3:
-        return 0.0, 1.0
-    lq = np.log(q[sel])
-    lh = np.log(hz[sel])
-    if np.ptp(lh) < 1e-3:
-        # every boosted sample sits at the same H_z (e.g. only exact mirror pairs):
-        # alpha_s is not identifiable; take a delta-like lobe that spares the neighbours.
-        alpha_s = 1000.0
-        return float(np.exp(np.average(lq - np.log(s[sel]) - alpha_s * lh))), alpha_s
-    A = np.stack([np.ones(sel.sum()), np.log(hz[sel])], 1)
-    rhs = lq - np.log(s[sel])
-    wt = np.sqrt(lq)
-    (lk, alpha_s), *_ = np.linalg.lstsq(A * wt[:, None], rhs * wt, rcond=None)
-    alpha_s = float(np.clip(alpha_s, 0.0, 1e4))
-    if alpha_s == 0.0:
-        lk = float(np.average(rhs, weights=wt))
-    return float(np.exp(min(lk, 700.0))), alpha_s
+        return (0.0, 1.0, 1.0, 0.0), (0.0, 1.0, 1.0, 0.0), None, None
+    t = Y[sel] / YB[sel]
+    hz_s = np.clip(g["hz"][sel], 0.0, 1.0)
+    icp = 1.0 / g["cp"][sel]
+    w = t ** (-4.0 / 3.0)
+    lobe = lambda p: hz_s ** p[1] * (p[2] + p[3] * icp)  # noqa: E731
+    p1 = _fit_lobe(t, 0.0, hz_s, icp, w)
+    for _ in range(2):  # two alternations (block coordinate descent over the two lobes)
+        p2 = _fit_lobe(t, lobe(p1), hz_s, icp, w)
+        p1 = _fit_lobe(t, lobe(p2), hz_s, icp, w)
+    s1, s2 = _lobe_params(*p1[1:]), _lobe_params(*p2[1:])
+    hz, cp = g["hz"], g["cp"]
+    X = highlight_basis(B, hz, cp, s1, s2)                     # (..., 2)
+    on = X.sum(-1) > 1e-3 * YB
+    if not on.any():
+        return s1, s2, None, None
+    wt = 1.0 / np.maximum(Y[on], 1e-12 * max(Y.max(), 1e-300)) ** (4.0 / 3.0)
+    Xw = X[on] * wt[:, None]
+    G, rhs = X[on].T @ Xw, Xw.T @ (rgb[on] - B[on])                # (2, 2), (2, 3)
+    cols = np.array([_nonneg_normal(G, rhs[:, c]) for c in range(3)])  # (3, 2)
+    return s1, s2, tuple(float(x) for x in cols[:, 0]), tuple(float(x) for x in cols[:, 1])
+
+
+def _fit_background(level, m_bg):
+    """r, a_r, b_r of P_n = r m_bg (a_r + b_r / cp) from one background level (RGB) per elevation pair.
+
+    Per pair the level is projected on m_bg (eq. 7's linear scaling r), then
+    the eq. 3 form a + b / cp is fitted by linear least squares and split as
+    r = a + b (the value at normal incidence), a_r + b_r = 1.
+    """
+    ratio = level @ m_bg / max(m_bg @ m_bg, 1e-300)
+    A, B = _fit_ab(ratio, _pair_cp())
+    r = A + B
+    if not (np.isfinite(r) and r > 0):
+        return float(max(np.nanmean(ratio), 0.0)) if np.any(np.isfinite(ratio)) else 0.0, 1.0, 0.0
+    return float(r), float(A / r), float(B / r)
 
 
 def fit(brdf):
@@ -261,7 +356,35 @@ def fit(brdf):
     g = _geometry()
     rgb = np.moveaxis(brdf, 0, -1)
     Y = rgb @ grid.LUMA
-    axes, rhos = detect_axes(Y)
+    axes, rhos = detect_axes(Y, rho_min=RHO_CAND)
+    sure = int(np.sum(rhos >= RHO_MIN))
+    model, out = _fit_axes(rgb, Y, axes[:sure], rhos[:sure], g)
+    if sure < len(axes):
+        # marginal candidates (RHO_CAND <= rho < RHO_MIN), strongest first: keep one only if
+        # the whole model refitted with it has a lower BIC (CIELAB residual, MODE_PARAMS per mode)
+        from .scores import exposure, rgb_to_lab
+        ex = exposure(rgb)
+        lab = rgb_to_lab(rgb / ex)
+        n = Y.size
+        # Laplace likelihood of the per-sample CIELAB error (what Delta E averages): -2 log L = 2 n log(mean |e|)
+
+        def bic(o):
+            return 2 * n * np.log(max(np.mean(np.linalg.norm(rgb_to_lab(o / ex) - lab, axis=-1)), 1e-300))
+        cur = bic(out)
+        tried = [dict(phi_a=float(np.rad2deg(axes[j])), rho=float(rhos[j])) for j in range(sure, len(axes))]
+        for j in range(sure, len(axes)):
+            m2, o2 = _fit_axes(rgb, Y, axes[:j + 1], rhos[:j + 1], g)
+            fit2 = bic(o2)
+            tried[j - sure]["delta_bic"] = float(fit2 + MODE_PARAMS * np.log(n) - cur)
+            if tried[j - sure]["delta_bic"] >= 0:
+                break
+            model, out, cur = m2, o2, fit2
+        model.meta["marginal"] = tried
+    return model
+
+
+def _fit_axes(rgb, Y, axes, rhos, g):
+    """Steps 2-6 for given axes -> (StencilModel, its RGB on the grid ``(6, 48, 6, 48, 3)``)."""
     R = anisotropic_residual(Y) if len(axes) else None
     Fs = [stencil(g["h"], p) for p in axes]
     ridges = [F > 0.97 for F in Fs]
@@ -295,40 +418,39 @@ def fit(brdf):
     Ms = [Ms[i] for i in order]
     T = [T[i] for i in order]
     rhos = [float(rhos[i]) for i in order]
-    # background (eq. 7)
+    # background (eq. 7): one level per elevation pair -- the darkest sample with modes (paper;
+    # m_bg is their mean colour, not the bottom mode's), the median of the non-specular
+    # samples without -- scaled on m_bg with eq. 3's elevation form
     if modes:
-        m_bg = np.array(modes[-1].m)
         idx = np.argmin(Y.transpose(0, 2, 1, 3).reshape(36, -1), axis=1)
-        dark = rgb.transpose(0, 2, 1, 3, 4).reshape(36, -1, 3)[np.arange(36), idx]
-        r = float(max(np.sum(dark @ m_bg) / (36 * max(m_bg @ m_bg, 1e-300)), 0.0))
-        a_s, b_s = modes[0].a, modes[0].b
+        level = rgb.transpose(0, 2, 1, 3, 4).reshape(36, -1, 3)[np.arange(36), idx]
+        m_bg = level.mean(0)
     else:
         diffuse = g["hz"] < np.cos(np.deg2rad(20.0))
         m_bg = np.median(rgb[diffuse], axis=0)
-        r = 1.0
-        pk = _per_pair(Y, np.ones(Y.shape, bool), np.nanmax)
-        a_s, b_s = _fit_ab(pk / max(np.nanmax(pk), 1e-300), _pair_cp())
-        smax = max(a_s + b_s / _pair_cp().min(), a_s + b_s, 1e-12)
-        a_s, b_s = a_s / smax, b_s / smax
-    bg = r * m_bg
+        level = np.stack([_per_pair(rgb[..., c], diffuse, np.nanmedian) for c in range(3)], -1)
+    r, a_r, b_r = _fit_background(level, m_bg)
+    bg = (r * np.maximum(elevation_scale(a_r, b_r, g["cp"]), 0.0))[..., None] * m_bg
     beta = [0.0] * max(len(modes) - 1, 0)
     B = merge_modes(T, Ms, beta, bg) * np.ones(Y.shape + (1,))
-    k, alpha_s = _fit_specular(Y, B @ grid.LUMA, g["hz"], g["cp"], a_s, b_s)
-    S = specular_factor(g["hz"], g["cp"], k, alpha_s, a_s, b_s)[..., None]
-    # beta (eq. 8) by closed-form least squares, top interface first
+    s1, s2, m_s, m_s2 = _fit_specular(rgb, B, g)
+    lin = lambda X: apply_specular(X, g["hz"], g["cp"], s1, s2, m_s, m_s2)  # noqa: E731  (linear in B)
+    # beta (eq. 8) by closed-form least squares, top interface first (B_S is linear in B)
     for j in range(len(beta)):
         b1 = list(beta)
         b1[j] = 1.0
-        D = (merge_modes(T, Ms, b1, bg) - B) * S
+        D = lin(merge_modes(T, Ms, b1, bg) - B)
         den = np.sum(D * D)
         if den > 0:
-            beta[j] = float(np.clip(np.sum(D * (rgb - B * S)) / den, 0.0, 1.0))
+            beta[j] = float(np.clip(np.sum(D * (rgb - lin(B))) / den, 0.0, 1.0))
             B = merge_modes(T, Ms, beta, bg) * np.ones(Y.shape + (1,))
-    return StencilModel(
+    model = StencilModel(
         modes=tuple(modes), beta=tuple(beta), r=r, m_bg=tuple(float(x) for x in m_bg),
-        k=k, alpha_s=alpha_s, a_s=float(a_s), b_s=float(b_s), dw_ratio=DW_RATIO,
+        k=s1[0], alpha_s=s1[1], a_s=s1[2], b_s=s1[3], dw_ratio=DW_RATIO,
+        k2=s2[0], alpha_s2=s2[1], a_s2=s2[2], b_s2=s2[3], m_s=m_s, m_s2=m_s2, a_r=a_r, b_r=b_r,
         meta={"rho": rhos},
     )
+    return model, np.maximum(lin(B), 0.0)
 
 
 def fit_file(path):

@@ -9,11 +9,18 @@ bottom one):
 * colour (eq. 5)        T_j = m_j max(0, L_j)
 * support mask          M_j = smoothstep(w_j - d_w, w_j + d_w, F_j),  d_w = dw_ratio * w_j
 * merging (eqs. 7-9, generalised to n modes, bottom-up)
-      P_n = r m_bg                                          (background)
+      P_n = r m_bg max(0, a_r + b_r / (cos th_i cos th_v))  (background; eq. 3's elevation
+                                                             scaling on eq. 7's r, a_r + b_r = 1)
       P_j = (1 - M_j) P_{j+1} + M_j [(1 - beta_j) T_j + beta_j T_{j+1}]
   (beta_j blends mode j with the mode below; the bottom mode has no beta.)
-* specular (eq. 10)     B_S = P_0 max(1, k H_z^alpha_s (a_s + b_s / (cos th_i cos th_v)))
-  with (a_s, b_s) = (a_0, b_0) when a mode exists (paper) and own values otherwise.
+* specular (eq. 10)     S = max(1, k H_z^alpha_s (a_s + b_s / cp) + k2 H_z^alpha_s2 (a_s2 + b_s2 / cp))
+                        B_S = P_0 S                              (eq. 10, m_s = None)
+                        B_S = P_0 + (S - 1) Y(P_0) (l_1 m_s + l_2 m_s2) / (l_1 + l_2)
+                                                                 (coloured highlights, l = the lobes)
+  with cp = cos th_i cos th_v and Y the Rec. 709 luminance.  The defaults
+  (k2 = 0, m_s = None, a_r = 1, b_r = 0) are the paper's equations; the
+  second lobe, the highlight colour m_s and the background's elevation
+  scaling are the fit's extensions (docs/stencil.md: what each costs).
 * retro-reflection (sec. 5.1): a mode with ``retro=True`` computes its H from
   (-wi_x, -wi_y, wi_z), i.e. phi_i + pi.
 
@@ -25,14 +32,16 @@ eq. 3 is floored at ``COS_FLOOR**2`` so grazing angles stay finite.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Tuple
+from typing import Optional, Tuple
 
 import numpy as np
+
+from .grid import LUMA
 
 __all__ = [
     "COS_FLOOR", "Mode", "StencilModel", "half_vector", "axis_vector", "stencil",
     "elevation_scale", "mode_luminance", "mode_colour", "support_mask", "merge_modes",
-    "specular_factor", "evaluate", "evaluate_utia",
+    "specular_lobe", "specular_factor", "highlight_basis", "apply_specular", "background", "evaluate", "evaluate_utia",
 ]
 
 COS_FLOOR = np.cos(np.deg2rad(85.0))
@@ -61,9 +70,17 @@ class StencilModel:
     m_bg: Tuple[float, float, float]      # background colour basis (m of the bottom mode)
     k: float                              # specular, eq. 10
     alpha_s: float
-    a_s: float = 1.0                      # specular elevation scaling (= a_0, b_0 with modes)
+    a_s: float = 1.0                      # specular elevation scaling (paper: a_0, b_0; fitted since issue 18)
     b_s: float = 0.0
     dw_ratio: float = 0.15                # d_w = dw_ratio * w (paper: 0.1-0.2)
+    k2: float = 0.0                       # second (broad) specular lobe of eq. 10
+    alpha_s2: float = 1.0
+    a_s2: float = 1.0
+    b_s2: float = 0.0
+    m_s: Optional[Tuple[float, float, float]] = None   # highlight colours of the lobes; None: eq. 10
+    m_s2: Optional[Tuple[float, float, float]] = None
+    a_r: float = 1.0                      # background elevation scaling (eq. 3 form on r)
+    b_r: float = 0.0
     meta: dict = field(default_factory=dict, compare=False)
 
     def with_modes(self, modes):
@@ -130,7 +147,7 @@ def support_mask(F, w, dw_ratio=0.15):
 
 
 def merge_modes(T, M, beta, background):
-    """Eqs. 7-9 generalised: T ``(n, ..., 3)``, M ``(n, ...)``, beta ``(n-1,)``, background ``(3,)``.
+    """Eqs. 7-9 generalised: T ``(n, ..., 3)``, M ``(n, ...)``, beta ``(n-1,)``, background ``(3,)`` or ``(..., 3)``.
 
     Bottom-up: P = background; for j = n-1 .. 0:
     P = (1 - M_j) P + M_j [(1 - beta_j) T_j + beta_j T_{j+1}]  (beta_{n-1} = 0).
@@ -147,10 +164,44 @@ def merge_modes(T, M, beta, background):
     return P
 
 
-def specular_factor(hz, cos_product, k, alpha_s, a_s, b_s):
-    """max(1, k H_z^alpha_s (a_s + b_s / (cos th_i cos th_v))) (eq. 10)."""
+def specular_lobe(hz, cos_product, k, alpha_s, a_s, b_s):
+    """k H_z^alpha_s (a_s + b_s / (cos th_i cos th_v)), the inside of eq. 10's max (>= 0)."""
     s = np.maximum(elevation_scale(a_s, b_s, cos_product), 0.0)
-    return np.maximum(1.0, k * np.power(np.clip(hz, 0.0, 1.0), alpha_s) * s)
+    return k * np.power(np.clip(hz, 0.0, 1.0), alpha_s) * s
+
+
+def specular_factor(hz, cos_product, k, alpha_s, a_s, b_s, k2=0.0, alpha_s2=1.0, a_s2=1.0, b_s2=0.0):
+    """S = max(1, l_1 + l_2), the sum of the lobes (eq. 10; the second lobe is zero with k2 = 0)."""
+    return np.maximum(1.0, specular_lobe(hz, cos_product, k, alpha_s, a_s, b_s)
+                      + specular_lobe(hz, cos_product, k2, alpha_s2, a_s2, b_s2))
+
+
+def highlight_basis(B, hz, cos_product, lobe1, lobe2):
+    """The boost (S - 1) Y(B) of eq. 10 split between the lobes in proportion l_1 : l_2, ``(..., 2)``."""
+    l1 = specular_lobe(hz, cos_product, *lobe1)
+    l2 = specular_lobe(hz, cos_product, *lobe2)
+    tot = l1 + l2
+    boost = (np.maximum(tot, 1.0) - 1.0) * (np.asarray(B, float) @ LUMA) / np.maximum(tot, 1e-30)
+    return np.stack([boost * l1, boost * l2], -1)
+
+
+def apply_specular(B, hz, cos_product, lobe1, lobe2=(0.0, 1.0, 1.0, 0.0), m_s=None, m_s2=None):
+    """Eq. 10.  Without highlight colours (m_s None) B_S = B S, as in the paper; with them the
+    boost (S - 1) Y(B) is split between the lobes (:func:`highlight_basis`) and each share takes
+    its lobe's colour: B_S = B + X_1 m_s + X_2 m_s2.  Linear in B; ``B (..., 3)``.
+    """
+    B = np.asarray(B, float)
+    if m_s is None:
+        return B * specular_factor(hz, cos_product, *lobe1, *lobe2)[..., None]
+    X = highlight_basis(B, hz, cos_product, lobe1, lobe2)
+    m_s2 = m_s if m_s2 is None else m_s2
+    return B + X[..., :1] * np.asarray(m_s, float) + X[..., 1:] * np.asarray(m_s2, float)
+
+
+def background(model, cos_product):
+    """P_n = r m_bg max(0, a_r + b_r / cp) (eq. 7 with eq. 3's elevation scaling), ``(..., 3)``."""
+    s = np.maximum(elevation_scale(model.a_r, model.b_r, cos_product), 0.0)
+    return (model.r * s)[..., None] * np.asarray(model.m_bg, float)
 
 
 def mode_terms(model, wi, wo):
@@ -170,11 +221,11 @@ def evaluate(model, wi, wo):
     """The fitted BRDF B_S(wi, wo) ``(..., 3)`` in 1/sr (eqs. 2-10); zero below the horizon."""
     wi, wo = np.broadcast_arrays(np.asarray(wi, float), np.asarray(wo, float))
     _, M, T = mode_terms(model, wi, wo)
-    bg = model.r * np.asarray(model.m_bg, float)
-    B = merge_modes(T, M, model.beta, bg) * np.ones(wi.shape[:-1] + (1,))
+    cp = _cos_product(wi, wo)
+    B = merge_modes(T, M, model.beta, background(model, cp)) * np.ones(wi.shape[:-1] + (1,))
     h = half_vector(wi, wo)
-    S = specular_factor(h[..., 2], _cos_product(wi, wo), model.k, model.alpha_s, model.a_s, model.b_s)
-    out = B * S[..., None]
+    out = apply_specular(B, h[..., 2], cp, (model.k, model.alpha_s, model.a_s, model.b_s),
+                         (model.k2, model.alpha_s2, model.a_s2, model.b_s2), model.m_s, model.m_s2)
     ok = (wi[..., 2] > 0) & (wo[..., 2] > 0)
     out = np.where(ok[..., None], np.maximum(out, 0.0), 0.0)
     return np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0)
