@@ -1,7 +1,8 @@
 # Two commands for a fresh machine with Python 3.11:
 #   make run   - set up .venv, install facetsynth, run the workflow on the demo sample
 #   make test  - set up .venv, install facetsynth with test extras, run the test suite
-#   make test-scenes - the slow whole-workflow scene tests of issue 13 (about 10 min; CI runs them after make test)
+#   make test-scenes - the slow whole-workflow tests at native resolution: the scenes of issue 13, the demo with its
+#                report and exports (about 15 min; CI runs them after make test)
 #   make test-cluster - two samples through a single-node SLURM cluster on localhost against a local run (about
 #                3 min; installs Debian's slurmctld, slurmd, slurm-client and munge when missing: needs root)
 #   make bench - run every preset (fast, balanced, accurate) on demo, wallpaper, satin (native: 168^2) and
@@ -40,10 +41,6 @@ $(VENV)/.installed-cluster: pyproject.toml $(VENV)/.installed-test
 	$(BIN)/python -m pip install --quiet -e ".[test,cluster]"
 	touch $@
 
-$(VENV)/.installed-bench: pyproject.toml | $(BIN)/python
-	$(BIN)/python -m pip install --quiet -e ".[bench]"
-	touch $@ $(VENV)/.installed-run
-
 run: $(VENV)/.installed-run
 	$(BIN)/snakemake --cores $(CORES)
 
@@ -62,10 +59,10 @@ test-firmware: $(VENV)/.installed-test
 	$(MAKE) -C rig/firmware BUILD_DIR=$(CURDIR)/.firmware-build
 	$(BIN)/python -m pytest -q -m 'not scenes and not cluster' tests/test_rig_conformance.py
 
-bench: $(VENV)/.installed-bench
+bench: $(VENV)/.installed-run
 	$(BIN)/python workflow/scripts/bench.py --cores $(CORES) --presets $(BENCH_PRESETS) --scenes $(BENCH_SCENES) $(BENCH_ARGS)
 
-bench-scale: $(VENV)/.installed-bench
+bench-scale: $(VENV)/.installed-run
 	$(BIN)/python workflow/scripts/bench_scale.py --cores $(CORES) --prune $(SCALE_ARGS)
 
 clean:

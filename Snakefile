@@ -10,6 +10,9 @@ min_version("9.0")
 configfile: "config/config.yaml"
 
 
+report: "workflow/report/workflow.rst"
+
+
 include: "workflow/rules/common.smk"
 include: "workflow/rules/calibrate.smk"
 include: "workflow/rules/capture.smk"
@@ -20,6 +23,8 @@ include: "workflow/rules/synthesis.smk"
 include: "workflow/rules/params.smk"
 include: "workflow/rules/validate.smk"
 include: "workflow/rules/stencil.smk"
+include: "workflow/rules/export.smk"
+include: "workflow/rules/report.smk"
 
 
 def final_outputs(sample):
@@ -29,6 +34,8 @@ def final_outputs(sample):
     outputs = [f"results/{sample}/svbrdf", f"results/{sample}/stencil_fit/metrics.json"]
     if rendered_truth(sample) is not None:
         outputs.append(f"results/{sample}/validate/metrics.json")
+    outputs.append(f"results/{sample}/export/metrics.json")   # the portable glTF material and its loss
+    outputs += report_figures(sample)   # the figures of `snakemake --report` (workflow/rules/report.smk)
     return outputs
 
 

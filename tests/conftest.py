@@ -16,3 +16,24 @@ assert len(RGL_FILES) == 7, f"{RGL_DIR}: expected the seven RGL .bsdf files"
 @pytest.fixture(scope="session")
 def repo() -> Path:
     return REPO
+
+
+def pytest_collection_modifyitems(items):
+    """A test that uses ``demo_run`` is a whole-workflow test: it runs with the scene tests (make test-scenes)."""
+    for item in items:
+        if "demo_run" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.scenes)
+
+
+@pytest.fixture(scope="session")
+def demo_run(repo, tmp_path_factory):
+    """The default demo sample, noise-free, through the whole default workflow (validate, stencil_fit, the
+    report's figures, the exports): one run (about 4 min) shared by the workflow, report and export tests, which
+    are therefore scene tests (``pytest_collection_modifyitems``)."""
+    from test_workflow import NOISE_FREE, make_workdir, snakemake
+    workdir = make_workdir(repo, tmp_path_factory.mktemp("wf"), "demo\tvirtual\tresources/scenes/demo.yaml\t\n",
+                           resolution=None)
+    (workdir / "noise-free.yaml").write_text("virtual:\n  noise: false\n")
+    done = snakemake(workdir, *NOISE_FREE)
+    assert done.returncode == 0, done.stderr[-3000:]
+    return workdir

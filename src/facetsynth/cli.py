@@ -46,6 +46,37 @@ def _predict(args: argparse.Namespace) -> None:
           f"(camera {out['camera']['width']}x{out['camera']['height']})")
 
 
+def _inspect(args: argparse.Namespace) -> None:
+    """What is done for a sample, its key figures and its warnings, in a few lines."""
+    from .summary import summarise
+    for line in summarise(args.sample_dir):
+        print(line)
+
+
+def _render(args: argparse.Namespace) -> None:
+    """One tone-mapped view of a fitted model under one point light."""
+    from .preview import PreviewSettings, render_preview
+    settings = PreviewSettings(theta_deg=args.view[0], phi_deg=args.view[1],
+                               light=None if args.light is None else tuple(args.light),
+                               intensity=args.intensity, size=args.size, exposure_ev=args.exposure)
+    done = render_preview(args.model_dir, args.output, settings)
+    light = ", ".join(f"{v:.3f}" for v in done["light"])
+    print(f"{done['file']}: {done['width']}x{done['height']}, {done['sample_pixels']} pixels see the sample, "
+          f"light at ({light}) m, exposure x{done['exposure_scale']:.3g}")
+
+
+def _export(args: argparse.Namespace) -> None:
+    """A fitted SVBRDF folder as a renderer's scene and material (exact: Mitsuba 3; portable: glTF 2.0)."""
+    if args.format == "mitsuba":
+        from .export.mitsuba import export_mitsuba as export
+    else:
+        from .export.gltf import export_gltf as export
+    done = export(args.model_dir, args.out_dir, force=args.force)
+    print(f"{args.out_dir}: {args.format} export of {args.model_dir}, {len(done['files'])} file(s)")
+    for line in done.get("next", []):
+        print(f"  {line}")
+
+
 STENCIL_OUTPUTS = ("stencil.json", "stencil.brdf")
 
 
@@ -189,6 +220,37 @@ def main(argv: list[str] | None = None) -> int:
                       help=f"sub-pixels per pixel side (box filter), 1 to {MAX_SUPERSAMPLE}")
     pred.add_argument("--force", action="store_true", help=FORCE_HELP)
     pred.set_defaults(run=_predict)
+
+    ins = commands.add_parser("inspect", help="what is done for a sample (results/SAMPLE), its key figures and "
+                                              "warnings, in a few lines")
+    ins.add_argument("sample_dir", metavar="RESULTS/SAMPLE", help="a sample's results folder, e.g. results/demo")
+    ins.set_defaults(run=_inspect)
+
+    ren = commands.add_parser("render", help="a tone-mapped preview of a fitted model from one view under one "
+                                             "point light")
+    ren.add_argument("model_dir", metavar="MODEL", help="fitted model folder (results/SAMPLE/svbrdf)")
+    ren.add_argument("--view", nargs=2, type=_finite_float, metavar=("THETA", "PHI"), default=(30.0, 0.0),
+                     help="camera elevation from the normal and azimuth from the sample's +x axis, degrees "
+                          "(default 30 0)")
+    ren.add_argument("--light", nargs=3, type=_finite_float, metavar=("X", "Y", "Z"),
+                     help="point light position in metres, sample centre at the origin, z up (default: the view "
+                          "mirrored about the normal, 2 sample diagonals away: the highlight on the sample)")
+    ren.add_argument("--intensity", type=_finite_float, default=1.0, help="light intensity, W/sr (default 1)")
+    ren.add_argument("--size", type=_integer, default=512, help="picture width and height in pixels (default 512)")
+    ren.add_argument("--exposure", type=_finite_float, default=None, metavar="EV",
+                     help="scale the radiance by 2^EV before display encoding (default: auto, the lit sample's "
+                          "99.5th percentile to white)")
+    ren.add_argument("-o", "--output", required=True, metavar="FILE",
+                     help="picture to write: .png, .jpg or .tif (tone-mapped sRGB) or .exr (linear radiance)")
+    ren.set_defaults(run=_render)
+
+    exp = commands.add_parser("export", help="a fitted SVBRDF for a renderer: mitsuba (exact: scene and BSDF "
+                                             "plugin) or gltf (portable anisotropic GGX material)")
+    exp.add_argument("format", choices=("mitsuba", "gltf"), help="mitsuba or gltf")
+    exp.add_argument("model_dir", metavar="MODEL", help="fitted SVBRDF folder (results/SAMPLE/svbrdf)")
+    exp.add_argument("out_dir", metavar="OUT", help="output folder")
+    exp.add_argument("--force", action="store_true", help=FORCE_HELP)
+    exp.set_defaults(run=_export)
 
     fit = commands.add_parser("stencil-fit", help="fit the adaptive highlight stencil model (paper 000) to a "
                                                   "measured BRDF: UTIA .bin/.exr, RGL .bsdf, MERL .binary")

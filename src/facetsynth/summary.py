@@ -1,0 +1,118 @@
+"""What a sample's results folder holds, in a few lines (``facetsynth inspect RESULTS/SAMPLE``).
+
+One line per stage in pipeline order: done (its ``metrics.json`` is there)
+with its key figures, or not yet. Then the warnings: every stage's
+``degenerate`` reason and the ``WARNING`` lines of the stage logs
+(``results/SAMPLE/logs/``), each once. Figures against ground truth appear
+only where the stage had the truth (virtual samples).
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+from typing import Any, Callable
+
+from .errors import InputError
+
+
+def _num(value: Any, fmt: str) -> str | None:
+    return None if not isinstance(value, (int, float)) or isinstance(value, bool) else format(value, fmt)
+
+
+# stage -> (metrics file under the sample folder, [(label, key, format)] or a function of the metrics)
+Figures = list[tuple[str, str, str]]
+STAGES: list[tuple[str, str, Figures | Callable[[dict], list[str]]]] = [
+    ("capture", "capture/manifest.json",
+     lambda m: [f"{len(m.get('frames', []))} frames",
+                f"camera {m['camera']['width']}x{m['camera']['height']}" if "camera" in m else ""]),
+    ("hdr", "hdr/metrics.json", [("frames", "frames", "d"), ("saturated pixels", "saturated_pixels", "d"),
+                                 ("dark frames", "dark_frames", "d"), ("vs truth", "median_rel_error", ".4f")]),
+    ("rectify", "rectify/metrics.json",
+     lambda m: [f"{m.get('cols')}x{m.get('rows')} points ({m.get('resolution_rule', '?')})",
+                *([f"registration {m['registration_error_px']:.2f} px"] if "registration_error_px" in m else [])]),
+    ("separate", "separate/metrics.json", [("kd vs truth", "kd_median_rel_error", ".4f"),
+                                           ("specular signal at", "specular_signal_fraction", ".0%"),
+                                           ("points without kd", "points_without_diffuse_estimate", "d")]),
+    ("resample", "resample/metrics.json",
+     lambda m: [f"direction grid {m.get('n_theta')} x {m.get('n_phi')}"]),
+    ("partial_ndf", "partial_ndf/metrics.json", [("NDF vs truth", "ndf_rel_l2_median", ".3f"),
+                                                 ("converged", "converged_fraction", ".0%")]),
+    ("cluster", "cluster/metrics.json", [("representatives", "representatives", "d")]),
+    ("synthesize", "synthesize/metrics.json", [("NDF vs truth", "ndf_rel_l2_median", ".3f"),
+                                               ("coverage before fill", "coverage_before_fill", ".0%"),
+                                               ("stalled", "stalled_representatives", "d")]),
+    ("params", "params/metrics.json", [("materials", "materials", "d"), ("eta median", "eta_median", ".3f"),
+                                       ("ks vs truth", "ks_median_rel_error", ".3f")]),
+    ("validate", "validate/metrics.json", [("held-out rel. L2", "heldout_rel_l2", ".3f"),
+                                           ("Ward", "baseline_ward_rel_l2", ".3f"),
+                                           ("PSNR dB", "heldout_psnr_db", ".1f")]),
+    ("stencil_fit", "stencil_fit/metrics.json", [("clusters", "clusters", "d"),
+                                                 ("Delta E median", "delta_e_median", ".2f"),
+                                                 ("Kurt's", "kurt_delta_e_median", ".2f"),
+                                                 ("PSNR dB", "psnr_db_median", ".1f")]),
+    ("export", "export/metrics.json", [("glTF held-out rel. L2", "heldout_portable_rel_l2", ".3f"),
+                                       ("full SVBRDF", "heldout_full_rel_l2", ".3f"),
+                                       ("loss", "heldout_loss_rel_l2", "+.4f")]),
+]
+WARNING = re.compile(r"\bWARNING\b\s+(?P<message>.*)")
+
+
+def _figures(metrics: dict, spec: Figures | Callable[[dict], list[str]]) -> list[str]:
+    if callable(spec):
+        return [s for s in spec(metrics) if s]
+    out = []
+    for label, key, fmt in spec:
+        text = _num(metrics.get(key), fmt)
+        if text is not None:
+            out.append(f"{label} {text}")
+    return out
+
+
+def _read_json(path: Path) -> dict:
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise InputError(path, f"unreadable ({exc})") from None
+    if not isinstance(data, dict):
+        raise InputError(path, f"expected a JSON object, found {type(data).__name__}")
+    return data
+
+
+def log_warnings(logs: Path) -> list[str]:
+    """The ``WARNING`` messages of every stage log in ``logs``, each once, as ``stage: message``."""
+    seen, out = set(), []
+    for log in sorted(logs.glob("**/*.log")) if logs.is_dir() else []:
+        for line in log.read_text(errors="replace").splitlines():
+            match = WARNING.search(line)
+            if match and (log.stem, match["message"]) not in seen:
+                seen.add((log.stem, match["message"]))
+                out.append(f"{log.stem}: {match['message']}")
+    return out
+
+
+def summarise(sample_dir: str | Path) -> list[str]:
+    """The lines ``facetsynth inspect`` prints for ``sample_dir`` (results/SAMPLE)."""
+    sample_dir = Path(sample_dir)
+    if not sample_dir.is_dir():
+        raise InputError(sample_dir, "not a folder; expected a sample's results folder such as results/demo")
+    done = {stage: sample_dir / path for stage, path, _ in STAGES if (sample_dir / path).is_file()}
+    if not done:
+        raise InputError(sample_dir, "holds no stage output (no capture/manifest.json, no */metrics.json): "
+                                     "is it results/SAMPLE?")
+    lines = [f"{sample_dir}: {len(done)} of {len(STAGES)} stages done"]
+    warnings = []
+    width = max(len(stage) for stage, _, _ in STAGES)
+    for stage, _, spec in STAGES:
+        if stage not in done:
+            lines.append(f"  {stage:<{width}}  -")
+            continue
+        metrics = _read_json(done[stage])
+        lines.append(f"  {stage:<{width}}  done: " + (", ".join(_figures(metrics, spec)) or "no figures"))
+        if metrics.get("degenerate"):
+            warnings.append(f"{stage}: degenerate: {metrics['degenerate']}")
+    warnings += log_warnings(sample_dir / "logs")
+    lines.append(f"{len(warnings)} warning(s)" + (":" if warnings else ""))
+    lines += [f"  {w}" for w in warnings]
+    return lines
