@@ -33,7 +33,7 @@ def test_report_holds_every_figure(demo_run, repo, tmp_path):
     from test_workflow import NOISE_FREE, snakemake
     # make_workdir copies no docs/: give the run the committed benchmark plots, then only their copies run
     shutil.copytree(repo / "docs/bench", demo_run / "docs/bench", dirs_exist_ok=True)
-    bench = ["results/bench/tradeoff.png", "results/bench/scale.png"]
+    bench = ["results/report/bench/tradeoff.png", "results/report/bench/scale.png"]
     done = snakemake(demo_run, *bench, *NOISE_FREE)       # targets first: --configfile takes every word after it
     assert done.returncode == 0, done.stderr[-3000:]
     done = snakemake(demo_run, *NOISE_FREE, "--report", str(tmp_path / "report.zip"))

@@ -1,6 +1,7 @@
 # The report's figures (`snakemake --report report.html`): per sample and stage, drawn from the stages'
 # outputs by facetsynth.figures; captions in workflow/report/. The committed speed / accuracy and scale
-# plots (docs/bench, `make bench`) join as copies under results/bench when the working copy has them.
+# plots (docs/bench, `make bench`) join as copies under results/report/bench when the working copy has them
+# (not results/bench: make bench writes its own plots there).
 
 REPORT_PARAMS = {"mosaic_frames": 12, "heldout_frames": 2,
                  "ndf_points": ((0.5, 0.5), (0.25, 0.5), (0.5, 0.25), (0.3, 0.7))}
@@ -15,7 +16,7 @@ def report_figures(sample):
     if rendered_truth(sample) is not None:
         out += [f"results/{sample}/report/heldout_{view}.png" for view in HELDOUT_VIEWS]
     if sample == MODEL_SAMPLES[0]:
-        out += [f"results/bench/{name}.png" for name in BENCH_FIGURES]
+        out += [f"results/report/bench/{name}.png" for name in BENCH_FIGURES]
     return out
 
 
@@ -153,14 +154,14 @@ rule report_bench:
     input:
         "docs/bench/{plot}.png",
     output:
-        report("results/bench/{plot}.png", caption="../report/bench.rst", category="benchmarks",
+        report("results/report/bench/{plot}.png", caption="../report/bench.rst", category="benchmarks",
                labels={"figure": "{plot}"}),
     wildcard_constraints:
         plot="tradeoff|scale",
     log:
-        "results/bench/logs/report_{plot}.log",
+        "results/report/bench/logs/report_{plot}.log",
     benchmark:
-        "results/bench/benchmarks/report_{plot}.tsv"
+        "results/report/bench/benchmarks/report_{plot}.tsv"
     threads: 1
     resources:
         mem_mb=100,   # cp
