@@ -32,13 +32,10 @@ from facetsynth.errors import InputError  # noqa: E402
 from facetsynth.export.mitsuba import export_mitsuba  # noqa: E402
 from facetsynth.fileio import read_rgb  # noqa: E402
 from facetsynth.grid import DirectionGrid  # noqa: E402
-from facetsynth.plane import PlaneGrid  # noqa: E402
 from facetsynth.predict import FrameRenderer  # noqa: E402
-from facetsynth.scene import MaterialMaps  # noqa: E402
 from facetsynth.svbrdf import SVBRDF, tabulate_truth  # noqa: E402
+from test_svbrdf import PLANE, P, random_maps, upper  # noqa: E402  (the same small SVBRDF as the loader's tests)
 
-PLANE = PlaneGrid(0.1, 0.08, 5, 4)
-P = PLANE.rows * PLANE.cols
 GRID = DirectionGrid(16, 64)
 K = 3
 
@@ -52,20 +49,6 @@ K = 3
 MAX_REL_L2_PREDICT = 0.05
 MAX_REL_L2_BOX = 0.032
 DEMO_SPP = 4
-
-
-def _maps(seed=0) -> MaterialMaps:
-    rng = np.random.default_rng(seed)
-    return MaterialMaps(kd=rng.uniform(0.05, 0.5, (P, 3)), ks=rng.uniform(0.2, 1.0, (P, 3)),
-                        eta=rng.uniform(1.2, 3.0, P), alpha_u=rng.uniform(0.15, 0.5, P),
-                        alpha_v=rng.uniform(0.15, 0.5, P), phi_frame=rng.uniform(0, np.pi, P),
-                        region=np.zeros(P, int))
-
-
-def _upper(rng, n):
-    d = rng.normal(size=(n, 3))
-    d[:, 2] = np.abs(d[:, 2])
-    return d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
 def _direction(theta_deg, phi_deg):
@@ -84,7 +67,7 @@ def _import(path: Path, name: str):
 @pytest.fixture(scope="module")
 def small(tmp_path_factory):
     """A small SVBRDF with eq. 18 mixtures and turns, saved, loaded back, exported; the exported plugin."""
-    truth = tabulate_truth(_maps(), GRID, PLANE)
+    truth = tabulate_truth(random_maps(), GRID, PLANE)
     rng = np.random.default_rng(5)
     r = truth.ndf.shape[0]
     neighbours = rng.integers(0, r, (P, K))
@@ -164,7 +147,7 @@ def test_plugin_eval_equals_svbrdf_eval_index(small):
     rng = np.random.default_rng(11)
     n = 3000
     index = rng.integers(0, P, n)
-    wi, wo = _upper(rng, n), _upper(rng, n)
+    wi, wo = upper(rng, n), upper(rng, n)
     g = slice(0, 600)                                     # grazing: z in [0, 1e-3), some exactly 0
     wi[g, 2] = rng.uniform(0, 1e-3, 600) * (rng.random(600) < 0.8)
     wi[g] /= np.linalg.norm(wi[g], axis=1, keepdims=True)
@@ -204,7 +187,7 @@ def test_scene_quad_uv_and_shading_frame_are_the_sample_planes(small, mi):
         np.testing.assert_allclose([si.uv[0], si.uv[1]], [x / 0.1 + 0.5, y / 0.08 + 0.5], atol=1e-6)
         np.testing.assert_allclose(np.array([si.sh_frame.s, si.sh_frame.t, si.sh_frame.n], float), np.eye(3),
                                    atol=1e-6)
-        view, light = _upper(rng, 1)[0], _upper(rng, 1)[0]
+        view, light = upper(rng, 1)[0], upper(rng, 1)[0]
         if rng.random() < 0.1:
             light[2] = -light[2]
         si.wi = mi.Vector3f(*view)
@@ -294,7 +277,7 @@ def test_mitsuba_sample_weight_is_eval_over_pdf(small, mi):
     drawn = 0
     for _ in range(300):
         si = scene.ray_intersect(mi.Ray3f([rng.uniform(-0.05, 0.05), rng.uniform(-0.04, 0.04), 0.5], [0, 0, -1.0]))
-        si.wi = mi.Vector3f(*_upper(rng, 1)[0])
+        si.wi = mi.Vector3f(*upper(rng, 1)[0])
         bsdf = si.bsdf()
         bs, weight = bsdf.sample(ctx, si, float(rng.random()), mi.Point2f(*rng.random(2)))
         if not bs.pdf > 0:
