@@ -2,6 +2,7 @@
 and the extended eq. 10 / eq. 7 terms are recovered from data they generated."""
 
 import importlib
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -12,24 +13,28 @@ from facetsynth.stencil import kurt, model as Mo, readers, scores
 F = importlib.import_module("facetsynth.stencil.fit")
 
 
-# Kurt fits take 1-2.5 s each on these three (the benchmark runs all seven); measured 2026-12-03:
-# stencil / Kurt Delta E  1.73 / 2.06, 4.63 / 5.29, 3.67 / 5.27.
-@pytest.mark.parametrize("name, stencil_de", [("vch_golden_yellow_rgb", 1.73), ("cc_ibiza_sunset_rgb", 4.63),
-                                              ("cc_iris_purple_gem_rgb", 3.67)])
+# Kurt fits take 1-2.5 s each on these (the benchmark runs all seven); measured 2026-12-03 (stencil / Kurt
+# Delta E): 1.60 / 2.06, 4.50 / 5.29, 3.67 / 5.27, 2.92 / 4.42; colodur_napoli 1.67 / 1.58 (+6 %, within 10 %).
+@pytest.mark.parametrize("name, stencil_de", [("vch_golden_yellow_rgb", 1.60), ("cc_ibiza_sunset_rgb", 4.50),
+                                              ("cc_iris_purple_gem_rgb", 3.67), ("satin_rosaline_rgb", 2.92),
+                                              ("colodur_napoli_4f_rgb", 1.67)])
 def test_stencil_delta_e_at_most_kurt_on_rgl(name, stencil_de):
     b = readers.read_rgl(RGL_DIR / f"{name}.bsdf")
     m = F.fit(b)
     st = scores.score_brdf(b, Mo.evaluate_utia(m))
     km, _ = kurt.fit_kurt(b)
     ku = scores.score_brdf(b, kurt.kurt_evaluate_utia(km))
-    assert st["delta_e"] <= ku["delta_e"]
+    # issue 18: at most Kurt's, or within 10 % with the reason measured (colodur: docs/stencil.md)
+    assert st["delta_e"] <= (1.10 if name.startswith("colodur") else 1.0) * ku["delta_e"]
     assert st["delta_e"] == pytest.approx(stencil_de, abs=0.02)     # the fit is deterministic
     assert len(m.modes) == 0 and m.m_s is not None and m.k2 > 0
+    # eq. 10 divided by k.h fits these real materials better; colodur needs it most (1.86 without)
+    assert m.jacobian == (name != "vch_golden_yellow_rgb")
 
 
 def test_ggx_three_lobes_third_mode_kept_by_bic_and_beats_kurt():
     """The third axis (rho 0.086 < RHO_MIN) is kept because it lowers the fit's BIC (issue 18);
-    measured 2026-12-03: stencil 9.18 (was 11.77 with 2 modes) vs Kurt 10.20."""
+    measured 2026-12-03: stencil 8.90 (11.77 with 2 modes) vs Kurt 10.20."""
     from facetsynth.stencil.benchmark import anisotropic_cases
     b = anisotropic_cases()["GGX 3 lobes at 0/60/120 deg"]
     m = F.fit(b)
@@ -41,12 +46,13 @@ def test_ggx_three_lobes_third_mode_kept_by_bic_and_beats_kurt():
     km, _ = kurt.fit_kurt(b)
     ku = scores.score_brdf(b, kurt.kurt_evaluate_utia(km))
     assert st["delta_e"] <= ku["delta_e"]
-    assert st["delta_e"] == pytest.approx(9.18, abs=0.02)
+    assert st["delta_e"] == pytest.approx(8.90, abs=0.02)
+    assert not m.jacobian             # rendered by a microfacet model without 1 / k.h: eq. 10 as it is
 
 
 def test_bic_rejects_weak_candidates_that_do_not_help(monkeypatch):
     """With the candidate floor lowered to 0.01 the stretched satin's weak axes (rho 0.023, 0.011) are
-    tried and rejected by the BIC; the model and its Delta E stay those of the zero-mode fit (3.48)."""
+    tried and rejected by the BIC; the model and its Delta E stay those of the zero-mode fit (3.27)."""
     from facetsynth.stencil.benchmark import anisotropic_cases
     b = anisotropic_cases()["satin_rosaline stretched x4 at 20/110 deg"]
     monkeypatch.setattr(F, "RHO_CAND", 0.01)
@@ -54,7 +60,7 @@ def test_bic_rejects_weak_candidates_that_do_not_help(monkeypatch):
     assert len(m.modes) == 0
     marg = m.meta["marginal"]
     assert marg and marg[0]["rho"] < F.RHO_MIN and marg[0]["delta_bic"] > 0
-    assert scores.score_brdf(b, Mo.evaluate_utia(m))["delta_e"] == pytest.approx(3.48, abs=0.02)
+    assert scores.score_brdf(b, Mo.evaluate_utia(m))["delta_e"] == pytest.approx(3.27, abs=0.02)
 
 
 def truth_model():
@@ -80,10 +86,24 @@ def test_extended_terms_recovered_from_their_own_output():
     assert scores.score_brdf(b, Mo.evaluate_utia(m))["delta_e"] < 0.6   # 0.56 measured
 
 
+def test_jacobian_and_schlick_chosen_from_their_own_output():
+    """A truth whose lobes are divided by k.h and carry a Schlick term: the fit picks the Jacobian form,
+    the broad lobe's alpha and its value at normal incidence (k.h = 1 there); one without: it does not."""
+    C2 = Mo.COS_FLOOR ** 2
+    plain = replace(truth_model(), a_r=1.05, b_r=-0.05)      # background > 0 at 75/75 deg (1.1 - 0.1/cp is not)
+    for truth, de in ((plain, 0.30), (replace(plain, jacobian=True, b_s=0.5 * C2, f_s=4 * C2), 0.43)):
+        b = Mo.evaluate_utia(truth)
+        m = F.fit(b)
+        assert m.jacobian == truth.jacobian
+        broad = min(Mo.lobes(m), key=lambda lobe: lobe[1])
+        assert broad[1] == 16.0 and broad[0] * (broad[2] + broad[3]) == pytest.approx(4.0, rel=0.05)
+        assert scores.score_brdf(b, Mo.evaluate_utia(m))["delta_e"] == pytest.approx(de, abs=0.03)
+
+
 def test_paper_defaults_are_eq10():
     """With m_s None and k2 = 0 the specular term is eq. 10 exactly: B_S = B max(1, k H_z^alpha (a + b/cp))."""
     B = np.array([[0.2, 0.1, 0.05]])
-    S = Mo.specular_factor(np.array([0.99]), np.array([0.5]), 3.0, 50.0, 0.5, 0.25)
+    S = Mo.specular_factor(np.array([0.99]), np.array([0.5]), (3.0, 50.0, 0.5, 0.25))
     np.testing.assert_allclose(Mo.apply_specular(B, np.array([0.99]), np.array([0.5]), (3.0, 50.0, 0.5, 0.25)),
                                B * S[:, None], rtol=1e-14)
     assert S[0] == pytest.approx(max(1.0, 3.0 * 0.99 ** 50 * (0.5 + 0.25 / 0.5)))

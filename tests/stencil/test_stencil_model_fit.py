@@ -83,8 +83,17 @@ def test_eq7_9_merging_two_modes_matches_paper():
 
 def test_eq10_specular_hand_case():
     # k Hz^alpha (a + b/cp) = 3 * 0.9^2 * (0.5 + 0.25/0.5) = 2.43 ; below 1 -> 1
-    assert Mo.specular_factor(0.9, 0.5, 3.0, 2.0, 0.5, 0.25) == pytest.approx(2.43)
-    assert Mo.specular_factor(0.1, 0.5, 3.0, 2.0, 0.5, 0.25) == 1.0
+    assert Mo.specular_factor(0.9, 0.5, (3.0, 2.0, 0.5, 0.25)) == pytest.approx(2.43)
+    assert Mo.specular_factor(0.1, 0.5, (3.0, 2.0, 0.5, 0.25)) == 1.0
+    # the Schlick term and the Jacobian (issue 18): k.h = 0.5, (1 - k.h)^5 = 1/32;
+    # 3 * 0.81 * (0.5 + (0.25 + 0.64 / 32) / 0.5) / 0.5 = 2.43 * 1.04 * 2 = 5.0544
+    lobe = (3.0, 2.0, 0.5, 0.25, 0.64)
+    assert Mo.specular_factor(0.9, 0.5, lobe, kh=0.5, jacobian=True) == pytest.approx(5.0544)
+    assert Mo.specular_factor(0.9, 0.5, lobe, kh=0.5) == pytest.approx(5.0544 / 2)
+    assert Mo.specular_factor(0.9, 0.5, lobe) == pytest.approx(2.43)        # kh = 1: no Schlick term
+    # grazing k.h is floored at COS_FLOOR, so the Jacobian stays finite
+    assert Mo.specular_lobe(0.9, 0.5, lobe, kh=0.0, jacobian=True) == pytest.approx(
+        3 * 0.81 * (0.5 + (0.25 + 0.64 * (1 - Mo.COS_FLOOR) ** 5) / 0.5) / Mo.COS_FLOOR)
 
 
 def test_evaluate_below_horizon_zero_and_finite():

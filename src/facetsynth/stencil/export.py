@@ -23,7 +23,7 @@ import numpy as np
 
 from facetsynth.errors import InputError
 
-from .model import COS_FLOOR, Mode, StencilModel
+from .model import COS_FLOOR, Mode, StencilModel, lobes
 
 __all__ = ["model_to_json", "model_from_json", "check_params", "to_brdf_explorer"]
 
@@ -47,7 +47,8 @@ def model_to_json(model, scores=None):
            "a_s2": _f(model.a_s2), "b_s2": _f(model.b_s2),
            "m_s": None if model.m_s is None else [_f(v) for v in model.m_s],
            "m_s2": None if model.m_s2 is None else [_f(v) for v in model.m_s2],
-           "a_r": _f(model.a_r), "b_r": _f(model.b_r)}
+           "a_r": _f(model.a_r), "b_r": _f(model.b_r), "f_s": _f(model.f_s), "f_s2": _f(model.f_s2),
+           "jacobian": bool(model.jacobian)}
     sc = dict(scores or {})
     out["scores"] = {k: (None if sc.get(k) is None else _f(sc[k])) for k in _SCORE_KEYS}
     for k, v in sc.items():
@@ -104,9 +105,10 @@ def check_params(d):
     value per mode but the last), ``r``, ``m_bg`` (3), ``k``, ``alpha_s``,
     ``a_s``, ``b_s``, ``dw_ratio``; optional (absent: the paper's eqs. 7 and 10)
     ``k2``, ``alpha_s2``, ``a_s2``, ``b_s2``, ``m_s``, ``m_s2`` (3 or null),
-    ``a_r``, ``b_r``; every number finite. Ranges are those the fit produces and
-    the model needs: 0 < w < 1, beta in [0, 1], colours m, m_bg, m_s, m_s2, ks,
-    k, k2, alpha, alpha_s, alpha_s2 and dw_ratio >= 0.
+    ``a_r``, ``b_r``, ``f_s``, ``f_s2``, ``jacobian`` (true or false); every
+    number finite. Ranges are those the fit produces and the model needs:
+    0 < w < 1, beta in [0, 1], colours m, m_bg, m_s, m_s2, ks, k, k2, alpha,
+    alpha_s, alpha_s2 and dw_ratio >= 0.
     """
     if not isinstance(d, dict):
         raise ValueError(f"expected a JSON object, found {type(d).__name__}")
@@ -132,9 +134,11 @@ def check_params(d):
     for key in ("k", "alpha_s", "dw_ratio"):
         _key(d, key, lo=0.0)
     for key, nonneg in (("k2", True), ("alpha_s2", True), ("a_s2", False), ("b_s2", False),
-                        ("a_r", False), ("b_r", False)):
+                        ("a_r", False), ("b_r", False), ("f_s", False), ("f_s2", False)):
         if key in d:
             _key(d, key, lo=0.0 if nonneg else -np.inf)
+    if not isinstance(d.get("jacobian", False), bool):
+        raise ValueError(f"'jacobian': expected true or false, found {_preview(d['jacobian'])}")
     for key in ("m_s", "m_s2"):
         if d.get(key) is not None:
             _key(d, key, n=3, lo=0.0)
@@ -153,7 +157,7 @@ def model_from_json(d, path=None):
     modes = tuple(Mode(phi_a=float(np.deg2rad(m["phi_a_deg"])), w=m["w"], a=m["a"], b=m["b"], kd=m["kd"],
                        ks=m["ks"], alpha=m["alpha"], m=tuple(m["m"]), retro=bool(m.get("retro", False)))
                   for m in d["modes"])
-    extra = {k: d[k] for k in ("k2", "alpha_s2", "a_s2", "b_s2", "a_r", "b_r") if k in d}
+    extra = {k: d[k] for k in ("k2", "alpha_s2", "a_s2", "b_s2", "a_r", "b_r", "f_s", "f_s2", "jacobian") if k in d}
     extra.update({k: tuple(d[k]) for k in ("m_s", "m_s2") if d.get(k) is not None})
     return StencilModel(modes=modes, beta=tuple(d["beta"]), r=d["r"], m_bg=tuple(d["m_bg"]), k=d["k"],
                         alpha_s=d["alpha_s"], a_s=d["a_s"], b_s=d["b_s"], dw_ratio=d["dw_ratio"], **extra)
@@ -209,12 +213,13 @@ def to_brdf_explorer(model):
         par(f"mbg{c}", v, 0.0, 4.0)
     for j, b in enumerate(model.beta):
         par(f"beta{j}", b, 0.0, 1.0)
-    for sfx, (k, al, a, b) in (("", (model.k, model.alpha_s, model.a_s, model.b_s)),
-                               ("2", (model.k2, model.alpha_s2, model.a_s2, model.b_s2))):
+    for sfx, (k, al, a, b, f) in zip(("", "2"), lobes(model)):
         par(f"k{sfx}", k, 0.0, max(10.0, k))
         par(f"alpha_s{sfx}", al, 0.0, 1000.0)
         par(f"a_s{sfx}", a, -1.0, 2.0)
         par(f"b_s{sfx}", b, -1.0, 2.0)
+        par(f"f_s{sfx}", f, 0.0, 2.0)
+    par("jacobian", float(model.jacobian), 0.0, 1.0)
     coloured = model.m_s is not None
     if coloured:
         for nm, col in (("ms", model.m_s), ("ms2", model.m_s if model.m_s2 is None else model.m_s2)):
@@ -225,8 +230,11 @@ def to_brdf_explorer(model):
         top = f"T{j}" if j == n - 1 else f"((1.0 - beta{j}) * T{j} + beta{j} * T{j + 1})"
         body.append(f"vec3 P{j} = (1.0 - M{j}) * P{j + 1} + M{j} * {top};")
     body += ["vec3 Hs = normalize(wi + wo);",
-             "float l1 = k * pow(clamp(Hs.z, 0.0, 1.0), alpha_s) * max(a_s + b_s / cp, 0.0);",
-             "float l2 = k2 * pow(clamp(Hs.z, 0.0, 1.0), alpha_s2) * max(a_s2 + b_s2 / cp, 0.0);",
+             f"float kh = clamp(dot(wi, Hs), {_g(COS_FLOOR)}, 1.0);",
+             "float sch = pow(1.0 - kh, 5.0);",
+             "float jac = mix(1.0, 1.0 / kh, jacobian);",
+             "float l1 = k * pow(clamp(Hs.z, 0.0, 1.0), alpha_s) * max(a_s + (b_s + f_s * sch) / cp, 0.0) * jac;",
+             "float l2 = k2 * pow(clamp(Hs.z, 0.0, 1.0), alpha_s2) * max(a_s2 + (b_s2 + f_s2 * sch) / cp, 0.0) * jac;",
              "float S = max(1.0, l1 + l2);"]
     if coloured:
         body += ["float boost = (S - 1.0) * dot(P0, vec3(0.2126, 0.7152, 0.0722)) / max(l1 + l2, 1e-30);",

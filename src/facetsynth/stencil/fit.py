@@ -18,8 +18,8 @@ Steps (paper 000 sec. 3.1 letters in brackets):
    candidates (``RHO_CAND`` 0.05 <= rho < 0.10), strongest first, are kept
    only if the whole model refitted with them has a lower BIC,
    2 n log(mean CIELAB error) + 11 log n per mode (a Laplace likelihood of the
-   per-sample error Delta E averages; n = 82944 samples of the grid): model
-   selection from the data's fit residual.
+   per-sample error Delta E averages; n = 20736 samples, the grid's every
+   2nd azimuth of both directions): model selection from the data's fit residual.
 2. [B] Width w of each mode from the data: the residual R binned over F of
    the mode (other modes' ridges and the specular neighbourhood excluded);
    w = the F below which the binned ridge excess drops under 10 % of its
@@ -37,14 +37,16 @@ Steps (paper 000 sec. 3.1 letters in brackets):
    sample (the paper's orange dots) with modes, the median of the
    non-specular samples without -- projected on m_bg (the darkest samples'
    mean colour with modes, the non-specular median colour without) and
-   fitted by eq. 3's form r (a_r + b_r / cp), a_r + b_r = 1.  beta_j (eq. 8)
-   by closed-form least squares (B_S is linear in each beta), clipped to [0, 1].
-6. [F] Specular (eq. 10) with two lobes k H_z^alpha (a + b / cp), fitted to
-   the ratio data / model-without-specular: variable projection on an alpha
-   grid (1 .. 65536), A, B >= 0 by weighted linear least squares per alpha
+   fitted by eq. 3's form r (a_r + b_r / cp), a_r + b_r = 1.
+6. [F] Specular (eq. 10) with two lobes k H_z^alpha (a + (b + f (1 - k.h)^5) / cp),
+   each divided by k.h or not (both forms are fitted, the one with the lower
+   CIELAB error is kept), fitted to the ratio data / model-without-specular
+   on the grid's every 2nd azimuth: variable projection on an alpha grid
+   (1 .. 65536), A, B, C >= 0 by weighted linear least squares per alpha
    (cube-root residual), one lobe, then the other given it, alternating
    twice; each lobe's highlight colour by linear least squares (eq. 5's
-   colour fit applied to the highlight).
+   colour fit applied to the highlight); then beta_j (eq. 8) by closed-form
+   least squares (B_S is linear in each beta), clipped to [0, 1].
 """
 
 from __future__ import annotations
@@ -56,8 +58,8 @@ from pathlib import Path
 import numpy as np
 
 from . import grid
-from .model import (COS_FLOOR, Mode, StencilModel, apply_specular, elevation_scale, half_vector, highlight_basis,
-                    merge_modes, mode_colour, mode_luminance, stencil, support_mask)
+from .model import (COS_FLOOR, NO_LOBE, Mode, StencilModel, apply_specular, elevation_scale, half_vector,
+                    highlight_basis, merge_modes, mode_colour, mode_luminance, stencil, support_mask)
 
 __all__ = ["RHO_MIN", "RHO_CAND", "MODE_PARAMS", "MAX_MODES", "SEPARATION_DEG", "axis_error_deg", "detect_axes", "fit",
            "fit_file"]
@@ -99,7 +101,8 @@ def _geometry():
     K = K - K.mean(axis=2, keepdims=True)  # remove the rotation average (mean over phi_i at fixed d)
     K = K.reshape(len(_CAND), -1)
     Kn = np.linalg.norm(K, axis=1)
-    return dict(wi=wi, wo=wo, h=h, hz=h[..., 2], cp=cp, pv=pv, K=K, Kn=Kn)
+    kh = np.clip(np.sum(wi * h, -1), COS_FLOOR, 1.0)  # wi . H, floored as in model.specular_lobe
+    return dict(wi=wi, wo=wo, h=h, hz=h[..., 2], cp=cp, kh=kh, schlick=(1.0 - kh) ** 5, pv=pv, K=K, Kn=Kn)
 
 
 def _rotate(X, pv):
@@ -203,13 +206,18 @@ def _pair_cp():
 
 
 def _fit_ab(target, cp):
-    """Linear least squares of a + b / cp to target (NaNs ignored); (a, b)."""
+    """Linear least squares of a + b / cp to target (NaNs ignored); (a, b): the 2 x 2 normal equations,
+    the mean alone when 1 / cp does not vary."""
     ok = np.isfinite(target)
     if ok.sum() < 2:
         return 1.0, 0.0
-    A = np.stack([np.ones(ok.sum()), 1.0 / cp[ok]], 1)
-    (a, b), *_ = np.linalg.lstsq(A, target[ok], rcond=None)
-    return float(a), float(b)
+    x, y = 1.0 / cp[ok], target[ok]
+    xc = x - x.mean()
+    sxx = xc @ xc
+    if sxx <= 1e-12 * (x @ x):
+        return float(y.mean()), 0.0
+    b = (xc @ y) / sxx
+    return float(y.mean() - b * x.mean()), float(b)
 
 
 def _fit_mode(phi_a, Y, R, F, W, others, g):
@@ -252,84 +260,103 @@ def _fit_mode(phi_a, Y, R, F, W, others, g):
     return Mode(float(phi_a), w, float(a), float(b), float(kd), float(ks), float(alpha), (1.0, 1.0, 1.0)), M
 
 
-def _nonneg_pair(X, t, w):
-    """argmin over c >= 0 of sum w (X c - t)^2 for X ``(n, 2)``."""
-    Xw = X * w[:, None]
-    return _nonneg_normal(X.T @ Xw, Xw.T @ t)
-
-
-def _nonneg_normal(G, r):
-    """argmin over c >= 0 of c.G.c - 2 c.r (G 2x2): the normal equations, else the better single column."""
-    det = G[0, 0] * G[1, 1] - G[0, 1] ** 2
-    if det > 1e-12 * G[0, 0] * G[1, 1]:
-        c = np.array([G[1, 1] * r[0] - G[0, 1] * r[1], G[0, 0] * r[1] - G[0, 1] * r[0]]) / det
-        if c.min() >= 0:
-            return c
-    one = [np.array([max(r[0], 0.0) / max(G[0, 0], 1e-300), 0.0]),
-           np.array([0.0, max(r[1], 0.0) / max(G[1, 1], 1e-300)])]
-    return min(one, key=lambda c: c @ G @ c - 2 * c @ r)
-
-
-def _fit_lobe(t, base, hz, inv_cp, w):
-    """One lobe H_z^alpha (A + B / cp) of eq. 10 added to ``base`` to fit the ratio t = data / model.
-
-    Variable projection on the alpha grid: per alpha, A, B >= 0 by weighted linear
-    least squares (the samples are those above the model, where eq. 10's max is
-    the lobe; weights t^(-4/3): the cube-root residual linearised, cf. CIELAB L*),
-    scored by the cube-root error of max(1, base + lobe).  Returns (err, alpha, A, B).
-    """
-    best = (np.inf, 1.0, 0.0, 0.0)
-    ct = np.cbrt(t)
-    ha = np.array(hz, float)
-    for alpha in _SPEC_ALPHAS:  # 17 closed-form candidates, not samples
-        X = np.stack([ha, ha * inv_cp], 1)
-        c = _nonneg_pair(X, t - base, w)
-        err = float(np.sum((np.cbrt(np.maximum(base + X @ c, 1.0)) - ct) ** 2))
-        if err < best[0]:
-            best = (err, float(alpha), float(c[0]), float(c[1]))
-        ha = ha * ha                                   # H_z^(2 alpha)
+def _nnls_normal(G, r):
+    """argmin over c >= 0 of c.G.c - 2 c.r for a batch of small problems, ``G (m, n, n)``, ``r (m, n)``,
+    n <= 3: the normal equations on every set of columns, the feasible one with the least objective
+    (the full set's solution when it is feasible, since it is the unconstrained optimum)."""
+    m, n = r.shape
+    best, best_obj = np.zeros((m, n)), np.zeros(m)
+    floor = 1e-12 * np.diagonal(G, axis1=1, axis2=2).max(axis=1)    # a column this weak stays at 0
+    for cols in _SUBSETS[n]:
+        idx = np.array(cols)
+        sub = G[:, idx[:, None], idx[None, :]]
+        diag = np.diagonal(sub, axis1=1, axis2=2)
+        ok = (np.abs(np.linalg.det(sub)) > 1e-12 * np.prod(diag, axis=1)) & np.all(diag > floor[:, None], axis=1)
+        sub = np.where(ok[:, None, None], sub, np.eye(len(idx)))
+        c = np.zeros((m, n))
+        c[:, idx] = np.linalg.solve(sub, r[:, idx, None])[..., 0]
+        obj = np.einsum("mi,mij,mj->m", c, G, c) - 2 * np.einsum("mi,mi->m", c, r)
+        better = ok & (c[:, idx].min(axis=1) >= 0) & (obj < best_obj)
+        best[better], best_obj[better] = c[better], obj[better]
     return best
 
 
-def _lobe_params(alpha, A, B):
-    """(k, alpha, a, b) with a, b scaled so max(a + b / cp) = 1 over the grid (k carries the scale)."""
-    smax = A + B / COS_FLOOR ** 2
-    return (float(smax), float(alpha), float(A / smax), float(B / smax)) if smax > 0 else (0.0, 1.0, 1.0, 0.0)
+_SUBSETS = {n: [tuple(i for i in range(n) if m >> i & 1) for m in range(1, 2 ** n)] for n in (1, 2, 3)}
 
 
-def _fit_specular(rgb, B, g):
-    """Eq. 10 from the data: two lobes (k, alpha_s, a_s, b_s) and their highlight colours m_s, m_s2.
+def _fit_lobe(t, base, hz, cols, w, near=None):
+    """One lobe H_z^alpha (A + (B + C (1 - k.h)^5) / cp) [/ k.h] of eq. 10 added to ``base`` to fit
+    the ratio t = data / model.
 
-    The ratio t = Y / Y(B) where it exceeds 1.02 (every 2nd azimuth of both
-    directions) is fitted by one lobe, then a second lobe
+    ``cols`` holds the lobe's elevation columns (1, 1 / cp, (1 - k.h)^5 / cp), each divided by
+    k.h for the Jacobian form.  Variable projection on the alpha grid: per alpha, A, B, C >= 0 by
+    weighted linear least squares (the samples are those above the model, where eq. 10's max is
+    the lobe; weights t^(-4/3): the cube-root residual linearised, cf. CIELAB L*), scored by the
+    cube-root error of max(1, base + lobe); all 17 alphas at once, or the 5 nearest to the alpha
+    ``near`` (a refit).  Returns (err, alpha, A, B, C).
+    """
+    H = np.empty((len(_SPEC_ALPHAS), len(t)))
+    H[0] = hz
+    for j in range(1, len(H)):                          # H_z^(2^j) by repeated squaring
+        H[j] = H[j - 1] * H[j - 1]
+    alphas = _SPEC_ALPHAS
+    if near is not None:
+        j0 = int(np.clip(np.searchsorted(_SPEC_ALPHAS, near), 2, len(_SPEC_ALPHAS) - 3))
+        alphas, H = alphas[j0 - 2:j0 + 3], H[j0 - 2:j0 + 3]
+    # normal equations of all alphas at once:
+    # G[a] = sum_n H[a, n]^2 w_n c_n c_n^T,  r[a] = sum_n H[a, n] w_n (t - base)_n c_n
+    k = cols.shape[1]
+    outer = (w[:, None, None] * cols[:, :, None] * cols[:, None, :]).reshape(len(t), k * k)
+    G = ((H * H) @ outer).reshape(-1, k, k)
+    C = _nnls_normal(G, H @ (((t - base) * w)[:, None] * cols))
+    pred = base + H * (C @ cols.T)                      # (alphas, samples)
+    err = np.sum((np.cbrt(np.maximum(pred, 1.0)) - np.cbrt(t)) ** 2, axis=1)
+    j = int(np.argmin(err))
+    return (float(err[j]), float(alphas[j]), *(float(x) for x in C[j]))
+
+
+def _lobe_params(alpha, A, B, C):
+    """(k, alpha, a, b, f) with a, b, f scaled so a + (b + f) / cp <= 1 over the grid (k carries the scale)."""
+    smax = A + (B + C) / COS_FLOOR ** 2
+    return (float(smax), float(alpha), float(A / smax), float(B / smax), float(C / smax)) if smax > 0 else NO_LOBE
+
+
+def _fit_specular(rgb, B, g, jacobian):
+    """Eq. 10 from the data: two lobes (k, alpha_s, a_s, b_s, f_s) and their highlight colours m_s, m_s2.
+
+    ``rgb``, ``B`` ``(n, 3)`` and the geometry ``g`` (hz, cp, kh, schlick) are the subsampled grid.
+    The ratio t = Y / Y(B) where it exceeds 1.02 is fitted by one lobe, then a second lobe
     on the rest, then each again given the other (each by :func:`_fit_lobe`).
     m_s, m_s2: per-channel non-negative linear least squares of data - B on the
     two lobes' shares of the boost (S - 1) Y(B) (:func:`highlight_basis`), where
     S > 1: eq. 5's colour fit applied to the highlight.
     """
     Y, YB = rgb @ grid.LUMA, B @ grid.LUMA
-    sel = (Y > 1.02 * YB) & (YB > 1e-12 * max(Y.max(), 1e-300)) & _SUBSAMPLE
+    sel = (Y > 1.02 * YB) & (YB > 1e-12 * max(Y.max(), 1e-300))
     if sel.sum() < 3:
-        return (0.0, 1.0, 1.0, 0.0), (0.0, 1.0, 1.0, 0.0), None, None
+        return NO_LOBE, NO_LOBE, None, None
     t = Y[sel] / YB[sel]
     hz_s = np.clip(g["hz"][sel], 0.0, 1.0)
     icp = 1.0 / g["cp"][sel]
+    cols = np.stack([np.ones_like(icp), icp, icp * g["schlick"][sel]], 1)
+    if jacobian:
+        cols = cols / g["kh"][sel, None]
     w = t ** (-4.0 / 3.0)
-    lobe = lambda p: hz_s ** p[1] * (p[2] + p[3] * icp)  # noqa: E731
-    p1 = _fit_lobe(t, 0.0, hz_s, icp, w)
-    for _ in range(2):  # two alternations (block coordinate descent over the two lobes)
-        p2 = _fit_lobe(t, lobe(p1), hz_s, icp, w)
-        p1 = _fit_lobe(t, lobe(p2), hz_s, icp, w)
+    lobe = lambda p: hz_s ** p[1] * (cols @ p[2:])  # noqa: E731
+    p1 = _fit_lobe(t, 0.0, hz_s, cols, w)
+    p2 = _fit_lobe(t, lobe(p1), hz_s, cols, w)
+    for _ in range(2):  # two alternations (block coordinate descent over the lobes), alpha near the last one
+        p1 = _fit_lobe(t, lobe(p2), hz_s, cols, w, near=p1[1])
+        p2 = _fit_lobe(t, lobe(p1), hz_s, cols, w, near=p2[1])
     s1, s2 = _lobe_params(*p1[1:]), _lobe_params(*p2[1:])
-    hz, cp = g["hz"], g["cp"]
-    X = highlight_basis(B, hz, cp, s1, s2)                     # (..., 2)
+    X = highlight_basis(B, g["hz"], g["cp"], s1, s2, g["kh"], jacobian)   # (..., 2)
     on = X.sum(-1) > 1e-3 * YB
     if not on.any():
         return s1, s2, None, None
     wt = 1.0 / np.maximum(Y[on], 1e-12 * max(Y.max(), 1e-300)) ** (4.0 / 3.0)
     Xw = X[on] * wt[:, None]
     G, rhs = X[on].T @ Xw, Xw.T @ (rgb[on] - B[on])                # (2, 2), (2, 3)
-    cols = np.array([_nonneg_normal(G, rhs[:, c]) for c in range(3)])  # (3, 2)
+    cols = _nnls_normal(np.broadcast_to(G, (3, 2, 2)), rhs.T)       # (3 channels, 2 lobes)
     return s1, s2, tuple(float(x) for x in cols[:, 0]), tuple(float(x) for x in cols[:, 1])
 
 
@@ -358,22 +385,20 @@ def fit(brdf):
     Y = rgb @ grid.LUMA
     axes, rhos = detect_axes(Y, rho_min=RHO_CAND)
     sure = int(np.sum(rhos >= RHO_MIN))
-    model, out = _fit_axes(rgb, Y, axes[:sure], rhos[:sure], g)
+    lab_error = _LabError(rgb)
+    model, out = _fit_axes(rgb, Y, axes[:sure], rhos[:sure], g, lab_error)
     if sure < len(axes):
         # marginal candidates (RHO_CAND <= rho < RHO_MIN), strongest first: keep one only if
         # the whole model refitted with it has a lower BIC (CIELAB residual, MODE_PARAMS per mode)
-        from .scores import exposure, rgb_to_lab
-        ex = exposure(rgb)
-        lab = rgb_to_lab(rgb / ex)
-        n = Y.size
+        n = int(_SUBSAMPLE.sum())
         # Laplace likelihood of the per-sample CIELAB error (what Delta E averages): -2 log L = 2 n log(mean |e|)
 
         def bic(o):
-            return 2 * n * np.log(max(np.mean(np.linalg.norm(rgb_to_lab(o / ex) - lab, axis=-1)), 1e-300))
+            return 2 * n * np.log(max(lab_error(o), 1e-300))
         cur = bic(out)
         tried = [dict(phi_a=float(np.rad2deg(axes[j])), rho=float(rhos[j])) for j in range(sure, len(axes))]
         for j in range(sure, len(axes)):
-            m2, o2 = _fit_axes(rgb, Y, axes[:j + 1], rhos[:j + 1], g)
+            m2, o2 = _fit_axes(rgb, Y, axes[:j + 1], rhos[:j + 1], g, lab_error, (model.jacobian,))
             fit2 = bic(o2)
             tried[j - sure]["delta_bic"] = float(fit2 + MODE_PARAMS * np.log(n) - cur)
             if tried[j - sure]["delta_bic"] >= 0:
@@ -383,8 +408,24 @@ def fit(brdf):
     return model
 
 
-def _fit_axes(rgb, Y, axes, rhos, g):
-    """Steps 2-6 for given axes -> (StencilModel, its RGB on the grid ``(6, 48, 6, 48, 3)``)."""
+class _LabError:
+    """Mean CIELAB error of the model's RGB on the subsampled grid ``(n, 3)`` against the data there,
+    exposure-normalised as in the scores (the per-sample error that Delta E averages)."""
+
+    def __init__(self, rgb):
+        from .scores import exposure, rgb_to_lab
+        self._lab, self._ex = rgb_to_lab, exposure(rgb)
+        self._ref = rgb_to_lab(rgb[_SUBSAMPLE] / self._ex)
+
+    def __call__(self, out):
+        return float(np.mean(np.linalg.norm(self._lab(out / self._ex) - self._ref, axis=-1)))
+
+
+def _fit_axes(rgb, Y, axes, rhos, g, lab_error, jacobians=(False, True)):
+    """Steps 2-6 for given axes -> (StencilModel, its RGB on the subsampled grid ``(n, 3)``).
+
+    Eq. 10 is fitted in each form of ``jacobians`` (with and without 1 / k.h) and the one with the lower
+    CIELAB error kept; a marginal mode's refit keeps the form chosen on the accepted axes."""
     R = anisotropic_residual(Y) if len(axes) else None
     Fs = [stencil(g["h"], p) for p in axes]
     ridges = [F > 0.97 for F in Fs]
@@ -431,11 +472,31 @@ def _fit_axes(rgb, Y, axes, rhos, g):
         level = np.stack([_per_pair(rgb[..., c], diffuse, np.nanmedian) for c in range(3)], -1)
     r, a_r, b_r = _fit_background(level, m_bg)
     bg = (r * np.maximum(elevation_scale(a_r, b_r, g["cp"]), 0.0))[..., None] * m_bg
-    beta = [0.0] * max(len(modes) - 1, 0)
-    B = merge_modes(T, Ms, beta, bg) * np.ones(Y.shape + (1,))
-    s1, s2, m_s, m_s2 = _fit_specular(rgb, B, g)
-    lin = lambda X: apply_specular(X, g["hz"], g["cp"], s1, s2, m_s, m_s2)  # noqa: E731  (linear in B)
-    # beta (eq. 8) by closed-form least squares, top interface first (B_S is linear in B)
+    # step 6 on the subsampled grid (every SPEC_STRIDE-th azimuth of both directions)
+    sub = _SUBSAMPLE
+    gs = {key: g[key][sub] for key in ("hz", "cp", "kh", "schlick")}
+    Ts, Mss, bgs = [x[sub] for x in T], [x[sub] for x in Ms], bg[sub]
+    Bs = merge_modes(Ts, Mss, [0.0] * max(len(modes) - 1, 0), bgs) * np.ones(bgs.shape)
+    fits = [_finish(rgb[sub], Ts, Mss, bgs, Bs, gs, jac) for jac in jacobians]
+    errors = [lab_error(f[1]) for f in fits]
+    (jacobian, s1, s2, m_s, m_s2, beta), out = fits[int(np.argmin(errors))]
+    model = StencilModel(
+        modes=tuple(modes), beta=tuple(beta), r=r, m_bg=tuple(float(x) for x in m_bg),
+        k=s1[0], alpha_s=s1[1], a_s=s1[2], b_s=s1[3], f_s=s1[4], dw_ratio=DW_RATIO,
+        k2=s2[0], alpha_s2=s2[1], a_s2=s2[2], b_s2=s2[3], f_s2=s2[4], m_s=m_s, m_s2=m_s2, a_r=a_r, b_r=b_r,
+        jacobian=bool(jacobian),
+        meta={"rho": rhos, "eq10_lab_error": {("jacobian" if j else "plain"): e for j, e in zip(jacobians, errors)}},
+    )
+    return model, out
+
+
+def _finish(rgb, T, Ms, bg, B, g, jacobian):
+    """Step 6 on the merged modes ``B`` (beta = 0), all ``(n, ...)`` on the subsampled grid: eq. 10's lobes
+    and colours, then beta (eq. 8) by closed-form least squares, top interface first (B_S is linear in B)
+    -> (parameters, the model's RGB there)."""
+    s1, s2, m_s, m_s2 = _fit_specular(rgb, B, g, jacobian)
+    lin = lambda X: apply_specular(X, g["hz"], g["cp"], s1, s2, m_s, m_s2, g["kh"], jacobian)  # noqa: E731
+    beta = [0.0] * max(len(T) - 1, 0)
     for j in range(len(beta)):
         b1 = list(beta)
         b1[j] = 1.0
@@ -443,14 +504,8 @@ def _fit_axes(rgb, Y, axes, rhos, g):
         den = np.sum(D * D)
         if den > 0:
             beta[j] = float(np.clip(np.sum(D * (rgb - lin(B))) / den, 0.0, 1.0))
-            B = merge_modes(T, Ms, beta, bg) * np.ones(Y.shape + (1,))
-    model = StencilModel(
-        modes=tuple(modes), beta=tuple(beta), r=r, m_bg=tuple(float(x) for x in m_bg),
-        k=s1[0], alpha_s=s1[1], a_s=s1[2], b_s=s1[3], dw_ratio=DW_RATIO,
-        k2=s2[0], alpha_s2=s2[1], a_s2=s2[2], b_s2=s2[3], m_s=m_s, m_s2=m_s2, a_r=a_r, b_r=b_r,
-        meta={"rho": rhos},
-    )
-    return model, np.maximum(lin(B), 0.0)
+            B = merge_modes(T, Ms, beta, bg) * np.ones(B.shape)
+    return (jacobian, s1, s2, m_s, m_s2, beta), np.maximum(lin(B), 0.0)
 
 
 def fit_file(path):

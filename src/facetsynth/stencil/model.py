@@ -13,14 +13,18 @@ bottom one):
                                                              scaling on eq. 7's r, a_r + b_r = 1)
       P_j = (1 - M_j) P_{j+1} + M_j [(1 - beta_j) T_j + beta_j T_{j+1}]
   (beta_j blends mode j with the mode below; the bottom mode has no beta.)
-* specular (eq. 10)     S = max(1, k H_z^alpha_s (a_s + b_s / cp) + k2 H_z^alpha_s2 (a_s2 + b_s2 / cp))
+* specular (eq. 10)     S = max(1, l_1 + l_2),  l = k H_z^alpha_s (a_s + (b_s + f_s (1 - k.h)^5) / cp) [/ k.h]
                         B_S = P_0 S                              (eq. 10, m_s = None)
                         B_S = P_0 + (S - 1) Y(P_0) (l_1 m_s + l_2 m_s2) / (l_1 + l_2)
-                                                                 (coloured highlights, l = the lobes)
-  with cp = cos th_i cos th_v and Y the Rec. 709 luminance.  The defaults
-  (k2 = 0, m_s = None, a_r = 1, b_r = 0) are the paper's equations; the
-  second lobe, the highlight colour m_s and the background's elevation
-  scaling are the fit's extensions (docs/stencil.md: what each costs).
+                                                                 (coloured highlights)
+  with cp = cos th_i cos th_v, k.h = cos of the half angle (wi . H), Y the
+  Rec. 709 luminance; the division by k.h only with ``jacobian``.  The
+  defaults (k2 = 0, f_s = f_s2 = 0, jacobian False, m_s = None, a_r = 1,
+  b_r = 0) are the paper's equations; the second lobe, the Schlick term
+  f_s (1 - k.h)^5 (Schlick 1994, the Fresnel factor of a microfacet lobe),
+  the Jacobian 1 / k.h (the half-vector density's, as in the lobes of Kurt
+  et al. and Ashikhmin-Shirley), the highlight colours and the background's
+  elevation scaling are the fit's extensions (docs/stencil.md: what each costs).
 * retro-reflection (sec. 5.1): a mode with ``retro=True`` computes its H from
   (-wi_x, -wi_y, wi_z), i.e. phi_i + pi.
 
@@ -41,10 +45,13 @@ from .grid import LUMA
 __all__ = [
     "COS_FLOOR", "Mode", "StencilModel", "half_vector", "axis_vector", "stencil",
     "elevation_scale", "mode_luminance", "mode_colour", "support_mask", "merge_modes",
-    "specular_lobe", "specular_factor", "highlight_basis", "apply_specular", "background", "evaluate", "evaluate_utia",
+    "NO_LOBE", "specular_lobe", "specular_factor", "lobes", "highlight_basis", "apply_specular", "background",
+    "evaluate", "evaluate_utia",
 ]
 
 COS_FLOOR = np.cos(np.deg2rad(85.0))
+# an absent specular lobe (k, alpha_s, a_s, b_s, f_s)
+NO_LOBE = (0.0, 1.0, 1.0, 0.0, 0.0)
 
 
 @dataclass(frozen=True)
@@ -81,6 +88,9 @@ class StencilModel:
     m_s2: Optional[Tuple[float, float, float]] = None
     a_r: float = 1.0                      # background elevation scaling (eq. 3 form on r)
     b_r: float = 0.0
+    f_s: float = 0.0                      # Schlick term of each lobe (0: eq. 10)
+    f_s2: float = 0.0
+    jacobian: bool = False                # lobes divided by k.h (False: eq. 10)
     meta: dict = field(default_factory=dict, compare=False)
 
     def with_modes(self, modes):
@@ -164,36 +174,49 @@ def merge_modes(T, M, beta, background):
     return P
 
 
-def specular_lobe(hz, cos_product, k, alpha_s, a_s, b_s):
-    """k H_z^alpha_s (a_s + b_s / (cos th_i cos th_v)), the inside of eq. 10's max (>= 0)."""
-    s = np.maximum(elevation_scale(a_s, b_s, cos_product), 0.0)
-    return k * np.power(np.clip(hz, 0.0, 1.0), alpha_s) * s
+def specular_lobe(hz, cos_product, lobe, kh=1.0, jacobian=False):
+    """One lobe of eq. 10's max, ``lobe = (k, alpha_s, a_s, b_s[, f_s])``:
+    k H_z^alpha_s max(0, a_s + (b_s + f_s (1 - k.h)^5) / cp), divided by k.h with ``jacobian``.
+
+    ``kh`` = wi . H, floored at COS_FLOOR; kh = 1 (the default) leaves out the Schlick term.
+    """
+    k, alpha_s, a_s, b_s, f_s = tuple(lobe) + (0.0,) * (5 - len(lobe))
+    kh = np.clip(kh, COS_FLOOR, 1.0)
+    s = np.maximum(elevation_scale(a_s, b_s + f_s * (1.0 - kh) ** 5, cos_product), 0.0)
+    out = k * np.power(np.clip(hz, 0.0, 1.0), alpha_s) * s
+    return out / kh if jacobian else out
 
 
-def specular_factor(hz, cos_product, k, alpha_s, a_s, b_s, k2=0.0, alpha_s2=1.0, a_s2=1.0, b_s2=0.0):
+def specular_factor(hz, cos_product, lobe1, lobe2=NO_LOBE, kh=1.0, jacobian=False):
     """S = max(1, l_1 + l_2), the sum of the lobes (eq. 10; the second lobe is zero with k2 = 0)."""
-    return np.maximum(1.0, specular_lobe(hz, cos_product, k, alpha_s, a_s, b_s)
-                      + specular_lobe(hz, cos_product, k2, alpha_s2, a_s2, b_s2))
+    return np.maximum(1.0, specular_lobe(hz, cos_product, lobe1, kh, jacobian)
+                      + specular_lobe(hz, cos_product, lobe2, kh, jacobian))
 
 
-def highlight_basis(B, hz, cos_product, lobe1, lobe2):
+def lobes(model):
+    """The model's two eq. 10 lobes as ``(k, alpha_s, a_s, b_s, f_s)`` tuples."""
+    return ((model.k, model.alpha_s, model.a_s, model.b_s, model.f_s),
+            (model.k2, model.alpha_s2, model.a_s2, model.b_s2, model.f_s2))
+
+
+def highlight_basis(B, hz, cos_product, lobe1, lobe2, kh=1.0, jacobian=False):
     """The boost (S - 1) Y(B) of eq. 10 split between the lobes in proportion l_1 : l_2, ``(..., 2)``."""
-    l1 = specular_lobe(hz, cos_product, *lobe1)
-    l2 = specular_lobe(hz, cos_product, *lobe2)
+    l1 = specular_lobe(hz, cos_product, lobe1, kh, jacobian)
+    l2 = specular_lobe(hz, cos_product, lobe2, kh, jacobian)
     tot = l1 + l2
     boost = (np.maximum(tot, 1.0) - 1.0) * (np.asarray(B, float) @ LUMA) / np.maximum(tot, 1e-30)
     return np.stack([boost * l1, boost * l2], -1)
 
 
-def apply_specular(B, hz, cos_product, lobe1, lobe2=(0.0, 1.0, 1.0, 0.0), m_s=None, m_s2=None):
+def apply_specular(B, hz, cos_product, lobe1, lobe2=NO_LOBE, m_s=None, m_s2=None, kh=1.0, jacobian=False):
     """Eq. 10.  Without highlight colours (m_s None) B_S = B S, as in the paper; with them the
     boost (S - 1) Y(B) is split between the lobes (:func:`highlight_basis`) and each share takes
     its lobe's colour: B_S = B + X_1 m_s + X_2 m_s2.  Linear in B; ``B (..., 3)``.
     """
     B = np.asarray(B, float)
     if m_s is None:
-        return B * specular_factor(hz, cos_product, *lobe1, *lobe2)[..., None]
-    X = highlight_basis(B, hz, cos_product, lobe1, lobe2)
+        return B * specular_factor(hz, cos_product, lobe1, lobe2, kh, jacobian)[..., None]
+    X = highlight_basis(B, hz, cos_product, lobe1, lobe2, kh, jacobian)
     m_s2 = m_s if m_s2 is None else m_s2
     return B + X[..., :1] * np.asarray(m_s, float) + X[..., 1:] * np.asarray(m_s2, float)
 
@@ -224,8 +247,8 @@ def evaluate(model, wi, wo):
     cp = _cos_product(wi, wo)
     B = merge_modes(T, M, model.beta, background(model, cp)) * np.ones(wi.shape[:-1] + (1,))
     h = half_vector(wi, wo)
-    out = apply_specular(B, h[..., 2], cp, (model.k, model.alpha_s, model.a_s, model.b_s),
-                         (model.k2, model.alpha_s2, model.a_s2, model.b_s2), model.m_s, model.m_s2)
+    out = apply_specular(B, h[..., 2], cp, *lobes(model), model.m_s, model.m_s2, kh=np.sum(wi * h, -1),
+                         jacobian=model.jacobian)
     ok = (wi[..., 2] > 0) & (wo[..., 2] > 0)
     out = np.where(ok[..., None], np.maximum(out, 0.0), 0.0)
     return np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0)
