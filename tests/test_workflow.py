@@ -128,12 +128,13 @@ def test_noise_free_demo_predicts_held_out_views_and_fits_stencils(demo_run):
             record["eta_interval_open"]))
     stencil = metrics(demo_run, "demo", "stencil_fit")
     assert stencil["ground_truth"] and stencil["clusters"] == len(np.load(demo_run / "results/demo/cluster/representatives.npy"))
-    # measured 0.73 noise-free (8 of 11), 0.875 default noise: the BIC keeps a second mode 22 deg from the true axis on
-    # two clusters (the fitted SVBRDF's side lobes), which lowers Delta E against the *truth* too (3.30 -> 3.10,
-    # 3.28 -> 3.02): accuracy, asserted below, is what counts; the count still catches a detector gone wrong
-    assert stencil["mode_count_accuracy"] >= 0.7
-    truth = stencil["vs_truth"]                              # measured 3.20 / 2.95 / 0.60 noise-free
-    assert truth["stencil"]["delta_e_median"] <= 1.15 * truth["kurt"]["delta_e_median"] <= 3.6
+    # measured 0.545 noise-free (6 of 11), 0.875 default noise: the BIC (CIEDE2000 residual) keeps a second mode
+    # 20-23 deg from the true axis on four clusters (the fitted SVBRDF's side lobes); each lowers Delta E against
+    # the fitted SVBRDF and against the *truth* (2.01 -> 1.89, 2.17 -> 1.84, 1.98 -> 1.85, 2.15 -> 1.79):
+    # accuracy, asserted below, is what counts; the count still catches a detector gone wrong
+    assert stencil["mode_count_accuracy"] >= 0.5
+    truth = stencil["vs_truth"]                              # measured 2.01 / 2.95 / 0.60 noise-free
+    assert truth["stencil"]["delta_e_median"] <= 0.8 * truth["kurt"]["delta_e_median"] <= 2.5
     assert truth["svbrdf"]["delta_e_median"] <= 0.8
     assert stencil["phi_a_error_deg_median"] <= 4.0
     models = json.loads((demo_run / "results/demo/stencil_fit/models/stencil.json").read_text())["clusters"]

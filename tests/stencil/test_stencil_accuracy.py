@@ -34,7 +34,7 @@ def test_stencil_delta_e_at_most_kurt_on_rgl(name, stencil_de):
 
 def test_ggx_three_lobes_third_mode_kept_by_bic_and_beats_kurt():
     """The third axis (rho 0.086 < RHO_MIN) is kept because it lowers the fit's BIC (issue 18);
-    measured 2026-12-03: stencil 8.90 (11.77 with 2 modes) vs Kurt 10.20."""
+    measured 2026-12-03: stencil 8.41 (11.77 with 2 modes) vs Kurt 10.20."""
     from facetsynth.stencil.benchmark import anisotropic_cases
     b = anisotropic_cases()["GGX 3 lobes at 0/60/120 deg"]
     m = F.fit(b)
@@ -46,8 +46,9 @@ def test_ggx_three_lobes_third_mode_kept_by_bic_and_beats_kurt():
     km, _ = kurt.fit_kurt(b)
     ku = scores.score_brdf(b, kurt.kurt_evaluate_utia(km))
     assert st["delta_e"] <= ku["delta_e"]
-    assert st["delta_e"] == pytest.approx(8.90, abs=0.02)
-    assert not m.jacobian             # rendered by a microfacet model without 1 / k.h: eq. 10 as it is
+    assert st["delta_e"] == pytest.approx(8.41, abs=0.02)
+    assert not m.jacobian             # rendered by a microfacet model without 1 / k.h
+    assert m.stencil_highlight        # the highlight shaped by the dominant mode's stencil lowers the error
 
 
 def test_bic_rejects_weak_candidates_that_do_not_help(monkeypatch):
@@ -98,6 +99,19 @@ def test_jacobian_and_schlick_chosen_from_their_own_output():
         broad = min(Mo.lobes(m), key=lambda lobe: lobe[1])
         assert broad[1] == 16.0 and broad[0] * (broad[2] + broad[3]) == pytest.approx(4.0, rel=0.05)
         assert scores.score_brdf(b, Mo.evaluate_utia(m))["delta_e"] == pytest.approx(de, abs=0.03)
+
+
+@pytest.mark.parametrize("shaped, de", [(False, 0.54), (True, 0.49)])
+def test_stencil_highlight_chosen_from_its_own_output(shaped, de):
+    """One mode at 30 deg, eq. 10's lobes with or without the dominant mode's stencil F_0^alpha_0: the fit
+    picks the form that made the data.  (On the two-mode synthetic the self-fit is too poor, Delta E ~15,
+    for the choice to be right: "Missing" in docs/stencil.md.)"""
+    from facetsynth.stencil.benchmark import _synth
+    truth = replace(_synth((30,)), stencil_highlight=shaped)
+    b = Mo.evaluate_utia(truth)
+    m = F.fit(b)
+    assert len(m.modes) == 1 and m.stencil_highlight == shaped and not m.jacobian
+    assert scores.score_brdf(b, Mo.evaluate_utia(m))["delta_e"] == pytest.approx(de, abs=0.03)
 
 
 def test_paper_defaults_are_eq10():

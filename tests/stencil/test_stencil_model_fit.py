@@ -88,12 +88,18 @@ def test_eq10_specular_hand_case():
     # the Schlick term and the Jacobian (issue 18): k.h = 0.5, (1 - k.h)^5 = 1/32;
     # 3 * 0.81 * (0.5 + (0.25 + 0.64 / 32) / 0.5) / 0.5 = 2.43 * 1.04 * 2 = 5.0544
     lobe = (3.0, 2.0, 0.5, 0.25, 0.64)
-    assert Mo.specular_factor(0.9, 0.5, lobe, kh=0.5, jacobian=True) == pytest.approx(5.0544)
+    jac = Mo.specular_scale(0.5, jacobian=True)
+    assert jac == 2.0
+    assert Mo.specular_factor(0.9, 0.5, lobe, kh=0.5, scale=jac) == pytest.approx(5.0544)
     assert Mo.specular_factor(0.9, 0.5, lobe, kh=0.5) == pytest.approx(5.0544 / 2)
     assert Mo.specular_factor(0.9, 0.5, lobe) == pytest.approx(2.43)        # kh = 1: no Schlick term
     # grazing k.h is floored at COS_FLOOR, so the Jacobian stays finite
-    assert Mo.specular_lobe(0.9, 0.5, lobe, kh=0.0, jacobian=True) == pytest.approx(
-        3 * 0.81 * (0.5 + (0.25 + 0.64 * (1 - Mo.COS_FLOOR) ** 5) / 0.5) / Mo.COS_FLOOR)
+    assert Mo.specular_scale(0.0, jacobian=True) == pytest.approx(1.0 / Mo.COS_FLOOR)
+    # the highlight shaped by the dominant mode's stencil: F_0^alpha_0 = 0.8^3 = 0.512, on the ridge (F_0 = 1) 1
+    assert Mo.specular_scale(0.5, True, (0.8, 3.0)) == pytest.approx(2.0 * 0.512)
+    assert Mo.specular_scale(1.0, False, (np.array([1.0, 0.0]), 3.0)).tolist() == [1.0, 0.0]
+    assert Mo.specular_factor(0.9, 0.5, lobe, kh=0.5, scale=Mo.specular_scale(0.5, True, (0.8, 3.0))) == \
+        pytest.approx(5.0544 * 0.512)
 
 
 def test_evaluate_below_horizon_zero_and_finite():

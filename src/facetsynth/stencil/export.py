@@ -48,7 +48,7 @@ def model_to_json(model, scores=None):
            "m_s": None if model.m_s is None else [_f(v) for v in model.m_s],
            "m_s2": None if model.m_s2 is None else [_f(v) for v in model.m_s2],
            "a_r": _f(model.a_r), "b_r": _f(model.b_r), "f_s": _f(model.f_s), "f_s2": _f(model.f_s2),
-           "jacobian": bool(model.jacobian)}
+           "jacobian": bool(model.jacobian), "stencil_highlight": bool(model.stencil_highlight)}
     sc = dict(scores or {})
     out["scores"] = {k: (None if sc.get(k) is None else _f(sc[k])) for k in _SCORE_KEYS}
     for k, v in sc.items():
@@ -105,7 +105,7 @@ def check_params(d):
     value per mode but the last), ``r``, ``m_bg`` (3), ``k``, ``alpha_s``,
     ``a_s``, ``b_s``, ``dw_ratio``; optional (absent: the paper's eqs. 7 and 10)
     ``k2``, ``alpha_s2``, ``a_s2``, ``b_s2``, ``m_s``, ``m_s2`` (3 or null),
-    ``a_r``, ``b_r``, ``f_s``, ``f_s2``, ``jacobian`` (true or false); every
+    ``a_r``, ``b_r``, ``f_s``, ``f_s2``, ``jacobian``, ``stencil_highlight`` (true or false); every
     number finite. Ranges are those the fit produces and the model needs:
     0 < w < 1, beta in [0, 1], colours m, m_bg, m_s, m_s2, ks, k, k2, alpha,
     alpha_s, alpha_s2 and dw_ratio >= 0.
@@ -137,8 +137,9 @@ def check_params(d):
                         ("a_r", False), ("b_r", False), ("f_s", False), ("f_s2", False)):
         if key in d:
             _key(d, key, lo=0.0 if nonneg else -np.inf)
-    if not isinstance(d.get("jacobian", False), bool):
-        raise ValueError(f"'jacobian': expected true or false, found {_preview(d['jacobian'])}")
+    for key in ("jacobian", "stencil_highlight"):
+        if not isinstance(d.get(key, False), bool):
+            raise ValueError(f"'{key}': expected true or false, found {_preview(d[key])}")
     for key in ("m_s", "m_s2"):
         if d.get(key) is not None:
             _key(d, key, n=3, lo=0.0)
@@ -157,7 +158,8 @@ def model_from_json(d, path=None):
     modes = tuple(Mode(phi_a=float(np.deg2rad(m["phi_a_deg"])), w=m["w"], a=m["a"], b=m["b"], kd=m["kd"],
                        ks=m["ks"], alpha=m["alpha"], m=tuple(m["m"]), retro=bool(m.get("retro", False)))
                   for m in d["modes"])
-    extra = {k: d[k] for k in ("k2", "alpha_s2", "a_s2", "b_s2", "a_r", "b_r", "f_s", "f_s2", "jacobian") if k in d}
+    extra = {k: d[k] for k in ("k2", "alpha_s2", "a_s2", "b_s2", "a_r", "b_r", "f_s", "f_s2", "jacobian",
+                               "stencil_highlight") if k in d}
     extra.update({k: tuple(d[k]) for k in ("m_s", "m_s2") if d.get(k) is not None})
     return StencilModel(modes=modes, beta=tuple(d["beta"]), r=d["r"], m_bg=tuple(d["m_bg"]), k=d["k"],
                         alpha_s=d["alpha_s"], a_s=d["a_s"], b_s=d["b_s"], dw_ratio=d["dw_ratio"], **extra)
@@ -220,6 +222,8 @@ def to_brdf_explorer(model):
         par(f"b_s{sfx}", b, -1.0, 2.0)
         par(f"f_s{sfx}", f, 0.0, 2.0)
     par("jacobian", float(model.jacobian), 0.0, 1.0)
+    if n:
+        par("stencil_highlight", float(model.stencil_highlight), 0.0, 1.0)
     coloured = model.m_s is not None
     if coloured:
         for nm, col in (("ms", model.m_s), ("ms2", model.m_s if model.m_s2 is None else model.m_s2)):
@@ -233,8 +237,12 @@ def to_brdf_explorer(model):
              f"float kh = clamp(dot(wi, Hs), {_g(COS_FLOOR)}, 1.0);",
              "float sch = pow(1.0 - kh, 5.0);",
              "float jac = mix(1.0, 1.0 / kh, jacobian);",
-             "float l1 = k * pow(clamp(Hs.z, 0.0, 1.0), alpha_s) * max(a_s + (b_s + f_s * sch) / cp, 0.0) * jac;",
-             "float l2 = k2 * pow(clamp(Hs.z, 0.0, 1.0), alpha_s2) * max(a_s2 + (b_s2 + f_s2 * sch) / cp, 0.0) * jac;",
+             "float shape = mix(1.0, pow(clamp(F0, 0.0, 1.0), alpha0), stencil_highlight);" if n else
+             "float shape = 1.0;",
+             "float l1 = k * pow(clamp(Hs.z, 0.0, 1.0), alpha_s) * max(a_s + (b_s + f_s * sch) / cp, 0.0) * jac"
+             " * shape;",
+             "float l2 = k2 * pow(clamp(Hs.z, 0.0, 1.0), alpha_s2) * max(a_s2 + (b_s2 + f_s2 * sch) / cp, 0.0) * jac"
+             " * shape;",
              "float S = max(1.0, l1 + l2);"]
     if coloured:
         body += ["float boost = (S - 1.0) * dot(P0, vec3(0.2126, 0.7152, 0.0722)) / max(l1 + l2, 1e-30);",

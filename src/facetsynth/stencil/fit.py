@@ -17,7 +17,7 @@ Steps (paper 000 sec. 3.1 letters in brackets):
    ``SEPARATION_DEG`` (20 deg) of an accepted axis are skipped.  Marginal
    candidates (``RHO_CAND`` 0.05 <= rho < 0.10), strongest first, are kept
    only if the whole model refitted with them has a lower BIC,
-   2 n log(mean CIELAB error) + 11 log n per mode (a Laplace likelihood of the
+   2 n log(mean CIEDE2000 error) + 11 log n per mode (a Laplace likelihood of the
    per-sample error Delta E averages; n = 20736 samples, the grid's every
    2nd azimuth of both directions): model selection from the data's fit residual.
 2. [B] Width w of each mode from the data: the residual R binned over F of
@@ -39,8 +39,9 @@ Steps (paper 000 sec. 3.1 letters in brackets):
    mean colour with modes, the non-specular median colour without) and
    fitted by eq. 3's form r (a_r + b_r / cp), a_r + b_r = 1.
 6. [F] Specular (eq. 10) with two lobes k H_z^alpha (a + (b + f (1 - k.h)^5) / cp),
-   each divided by k.h or not (both forms are fitted, the one with the lower
-   CIELAB error is kept), fitted to the ratio data / model-without-specular
+   divided by k.h or not, and with modes shaped by the dominant mode's stencil
+   F_0^alpha_0 or not (the forms are fitted in turn, each kept if it lowers the
+   CIELAB error), fitted to the ratio data / model-without-specular
    on the grid's every 2nd azimuth: variable projection on an alpha grid
    (1 .. 65536), A, B, C >= 0 by weighted linear least squares per alpha
    (cube-root residual), one lobe, then the other given it, alternating
@@ -59,7 +60,7 @@ import numpy as np
 
 from . import grid
 from .model import (COS_FLOOR, NO_LOBE, Mode, StencilModel, apply_specular, elevation_scale, half_vector,
-                    highlight_basis, merge_modes, mode_colour, mode_luminance, stencil, support_mask)
+                    highlight_basis, merge_modes, mode_colour, mode_luminance, specular_scale, stencil, support_mask)
 
 __all__ = ["RHO_MIN", "RHO_CAND", "MODE_PARAMS", "MAX_MODES", "SEPARATION_DEG", "axis_error_deg", "detect_axes", "fit",
            "fit_file"]
@@ -263,54 +264,75 @@ def _fit_mode(phi_a, Y, R, F, W, others, g):
 def _nnls_normal(G, r):
     """argmin over c >= 0 of c.G.c - 2 c.r for a batch of small problems, ``G (m, n, n)``, ``r (m, n)``,
     n <= 3: the normal equations on every set of columns, the feasible one with the least objective
-    (the full set's solution when it is feasible, since it is the unconstrained optimum)."""
+    (the full set's solution when it is feasible, since it is the unconstrained optimum; the other sets
+    are tried only for the problems where it is not)."""
     m, n = r.shape
     best, best_obj = np.zeros((m, n)), np.zeros(m)
     floor = 1e-12 * np.diagonal(G, axis1=1, axis2=2).max(axis=1)    # a column this weak stays at 0
+    todo = np.arange(m)
     for cols in _SUBSETS[n]:
+        if not todo.size:
+            break
         idx = np.array(cols)
-        sub = G[:, idx[:, None], idx[None, :]]
+        Gt, rt = G[todo], r[todo]
+        sub = Gt[:, idx[:, None], idx[None, :]]
         diag = np.diagonal(sub, axis1=1, axis2=2)
-        ok = (np.abs(np.linalg.det(sub)) > 1e-12 * np.prod(diag, axis=1)) & np.all(diag > floor[:, None], axis=1)
+        ok = (np.abs(np.linalg.det(sub)) > 1e-12 * np.prod(diag, axis=1)) & np.all(diag > floor[todo, None], axis=1)
         sub = np.where(ok[:, None, None], sub, np.eye(len(idx)))
-        c = np.zeros((m, n))
-        c[:, idx] = np.linalg.solve(sub, r[:, idx, None])[..., 0]
-        obj = np.einsum("mi,mij,mj->m", c, G, c) - 2 * np.einsum("mi,mi->m", c, r)
-        better = ok & (c[:, idx].min(axis=1) >= 0) & (obj < best_obj)
-        best[better], best_obj[better] = c[better], obj[better]
+        c = np.zeros((len(todo), n))
+        c[:, idx] = np.linalg.solve(sub, rt[:, idx, None])[..., 0]
+        obj = np.einsum("mi,mij,mj->m", c, Gt, c) - 2 * np.einsum("mi,mi->m", c, rt)
+        feasible = ok & (c[:, idx].min(axis=1) >= 0)
+        better = feasible & (obj < best_obj[todo])
+        best[todo[better]], best_obj[todo[better]] = c[better], obj[better]
+        if len(cols) == n:                              # solved without constraints: done
+            todo = todo[~feasible]
     return best
 
 
-_SUBSETS = {n: [tuple(i for i in range(n) if m >> i & 1) for m in range(1, 2 ** n)] for n in (1, 2, 3)}
+# column sets, the full one first
+_SUBSETS = {n: [tuple(i for i in range(n) if m >> i & 1) for m in range(2 ** n - 1, 0, -1)] for n in (1, 2, 3)}
 
 
-def _fit_lobe(t, base, hz, cols, w, near=None):
-    """One lobe H_z^alpha (A + (B + C (1 - k.h)^5) / cp) [/ k.h] of eq. 10 added to ``base`` to fit
-    the ratio t = data / model.
+class _LobeData:
+    """What every lobe fit of one eq. 10 fit shares: the ratio t = data / model, its cube root, the weights
+    t^(-4/3), the elevation columns (1, 1 / cp, (1 - k.h)^5 / cp) times the lobes' common factor,
+    H_z^(2^j) for the 17 alphas (repeated squaring) and the per-sample outer products of the columns."""
 
-    ``cols`` holds the lobe's elevation columns (1, 1 / cp, (1 - k.h)^5 / cp), each divided by
-    k.h for the Jacobian form.  Variable projection on the alpha grid: per alpha, A, B, C >= 0 by
-    weighted linear least squares (the samples are those above the model, where eq. 10's max is
-    the lobe; weights t^(-4/3): the cube-root residual linearised, cf. CIELAB L*), scored by the
-    cube-root error of max(1, base + lobe); all 17 alphas at once, or the 5 nearest to the alpha
-    ``near`` (a refit).  Returns (err, alpha, A, B, C).
+    def __init__(self, t, hz, cols):
+        self.t, self.ct, self.w, self.cols = t, np.cbrt(t), t ** (-4.0 / 3.0), cols
+        self.H = np.empty((len(_SPEC_ALPHAS), len(t)))
+        self.H[0] = hz
+        for j in range(1, len(self.H)):
+            self.H[j] = self.H[j - 1] * self.H[j - 1]
+        k = cols.shape[1]
+        self.outer = (self.w[:, None, None] * cols[:, :, None] * cols[:, None, :]).reshape(len(t), k * k)
+
+    def lobe(self, p):
+        """A fitted lobe (err, alpha, A, B, C) at the samples."""
+        return self.H[int(np.log2(p[1]))] * (self.cols @ p[2:])
+
+
+def _fit_lobe(d, base, near=None):
+    """One lobe H_z^alpha (A + (B + C (1 - k.h)^5) / cp) [times the common factor] of eq. 10 added to
+    ``base`` to fit the ratio t = data / model of :class:`_LobeData` ``d``.
+
+    Variable projection on the alpha grid: per alpha, A, B, C >= 0 by weighted linear least squares (the
+    samples are those above the model, where eq. 10's max is the lobe; weights t^(-4/3): the cube-root
+    residual linearised, cf. CIELAB L*), scored by the cube-root error of max(1, base + lobe); all 17
+    alphas at once, or the 5 nearest to the alpha ``near`` (a refit).  Returns (err, alpha, A, B, C).
     """
-    H = np.empty((len(_SPEC_ALPHAS), len(t)))
-    H[0] = hz
-    for j in range(1, len(H)):                          # H_z^(2^j) by repeated squaring
-        H[j] = H[j - 1] * H[j - 1]
-    alphas = _SPEC_ALPHAS
+    alphas, H, outer = _SPEC_ALPHAS, d.H, d.outer
     if near is not None:
         j0 = int(np.clip(np.searchsorted(_SPEC_ALPHAS, near), 2, len(_SPEC_ALPHAS) - 3))
         alphas, H = alphas[j0 - 2:j0 + 3], H[j0 - 2:j0 + 3]
     # normal equations of all alphas at once:
     # G[a] = sum_n H[a, n]^2 w_n c_n c_n^T,  r[a] = sum_n H[a, n] w_n (t - base)_n c_n
-    k = cols.shape[1]
-    outer = (w[:, None, None] * cols[:, :, None] * cols[:, None, :]).reshape(len(t), k * k)
+    k = d.cols.shape[1]
     G = ((H * H) @ outer).reshape(-1, k, k)
-    C = _nnls_normal(G, H @ (((t - base) * w)[:, None] * cols))
-    pred = base + H * (C @ cols.T)                      # (alphas, samples)
-    err = np.sum((np.cbrt(np.maximum(pred, 1.0)) - np.cbrt(t)) ** 2, axis=1)
+    C = _nnls_normal(G, H @ (((d.t - base) * d.w)[:, None] * d.cols))
+    pred = base + H * (C @ d.cols.T)                    # (alphas, samples)
+    err = np.sum((np.cbrt(np.maximum(pred, 1.0)) - d.ct) ** 2, axis=1)
     j = int(np.argmin(err))
     return (float(err[j]), float(alphas[j]), *(float(x) for x in C[j]))
 
@@ -321,10 +343,11 @@ def _lobe_params(alpha, A, B, C):
     return (float(smax), float(alpha), float(A / smax), float(B / smax), float(C / smax)) if smax > 0 else NO_LOBE
 
 
-def _fit_specular(rgb, B, g, jacobian):
+def _fit_specular(rgb, B, g, scale):
     """Eq. 10 from the data: two lobes (k, alpha_s, a_s, b_s, f_s) and their highlight colours m_s, m_s2.
 
-    ``rgb``, ``B`` ``(n, 3)`` and the geometry ``g`` (hz, cp, kh, schlick) are the subsampled grid.
+    ``rgb``, ``B`` ``(n, 3)``, the geometry ``g`` (hz, cp, kh, schlick) and the lobes' common factor
+    ``scale`` (:func:`~facetsynth.stencil.model.specular_scale`) are on the subsampled grid.
     The ratio t = Y / Y(B) where it exceeds 1.02 is fitted by one lobe, then a second lobe
     on the rest, then each again given the other (each by :func:`_fit_lobe`).
     m_s, m_s2: per-channel non-negative linear least squares of data - B on the
@@ -335,21 +358,17 @@ def _fit_specular(rgb, B, g, jacobian):
     sel = (Y > 1.02 * YB) & (YB > 1e-12 * max(Y.max(), 1e-300))
     if sel.sum() < 3:
         return NO_LOBE, NO_LOBE, None, None
-    t = Y[sel] / YB[sel]
-    hz_s = np.clip(g["hz"][sel], 0.0, 1.0)
     icp = 1.0 / g["cp"][sel]
     cols = np.stack([np.ones_like(icp), icp, icp * g["schlick"][sel]], 1)
-    if jacobian:
-        cols = cols / g["kh"][sel, None]
-    w = t ** (-4.0 / 3.0)
-    lobe = lambda p: hz_s ** p[1] * (cols @ p[2:])  # noqa: E731
-    p1 = _fit_lobe(t, 0.0, hz_s, cols, w)
-    p2 = _fit_lobe(t, lobe(p1), hz_s, cols, w)
+    d = _LobeData(Y[sel] / YB[sel], np.clip(g["hz"][sel], 0.0, 1.0),
+                  cols * np.broadcast_to(scale, sel.shape)[sel, None])
+    p1 = _fit_lobe(d, 0.0)
+    p2 = _fit_lobe(d, d.lobe(p1))
     for _ in range(2):  # two alternations (block coordinate descent over the lobes), alpha near the last one
-        p1 = _fit_lobe(t, lobe(p2), hz_s, cols, w, near=p1[1])
-        p2 = _fit_lobe(t, lobe(p1), hz_s, cols, w, near=p2[1])
+        p1 = _fit_lobe(d, d.lobe(p2), near=p1[1])
+        p2 = _fit_lobe(d, d.lobe(p1), near=p2[1])
     s1, s2 = _lobe_params(*p1[1:]), _lobe_params(*p2[1:])
-    X = highlight_basis(B, g["hz"], g["cp"], s1, s2, g["kh"], jacobian)   # (..., 2)
+    X = highlight_basis(B, g["hz"], g["cp"], s1, s2, g["kh"], scale)   # (..., 2)
     on = X.sum(-1) > 1e-3 * YB
     if not on.any():
         return s1, s2, None, None
@@ -389,16 +408,17 @@ def fit(brdf):
     model, out = _fit_axes(rgb, Y, axes[:sure], rhos[:sure], g, lab_error)
     if sure < len(axes):
         # marginal candidates (RHO_CAND <= rho < RHO_MIN), strongest first: keep one only if
-        # the whole model refitted with it has a lower BIC (CIELAB residual, MODE_PARAMS per mode)
+        # the whole model refitted with it has a lower BIC (CIEDE2000 residual, MODE_PARAMS per mode)
         n = int(_SUBSAMPLE.sum())
-        # Laplace likelihood of the per-sample CIELAB error (what Delta E averages): -2 log L = 2 n log(mean |e|)
+        # Laplace likelihood of the per-sample CIEDE2000 error (what Delta E averages): -2 log L = 2 n log(mean e)
 
         def bic(o):
-            return 2 * n * np.log(max(lab_error(o), 1e-300))
+            return 2 * n * np.log(max(lab_error(o, de2000=True), 1e-300))
         cur = bic(out)
         tried = [dict(phi_a=float(np.rad2deg(axes[j])), rho=float(rhos[j])) for j in range(sure, len(axes))]
         for j in range(sure, len(axes)):
-            m2, o2 = _fit_axes(rgb, Y, axes[:j + 1], rhos[:j + 1], g, lab_error, (model.jacobian,))
+            m2, o2 = _fit_axes(rgb, Y, axes[:j + 1], rhos[:j + 1], g, lab_error,
+                               (model.jacobian, model.stencil_highlight and bool(model.modes)))
             fit2 = bic(o2)
             tried[j - sure]["delta_bic"] = float(fit2 + MODE_PARAMS * np.log(n) - cur)
             if tried[j - sure]["delta_bic"] >= 0:
@@ -409,23 +429,26 @@ def fit(brdf):
 
 
 class _LabError:
-    """Mean CIELAB error of the model's RGB on the subsampled grid ``(n, 3)`` against the data there,
-    exposure-normalised as in the scores (the per-sample error that Delta E averages)."""
+    """Mean colour error of the model's RGB on the subsampled grid ``(n, 3)`` against the data there, in
+    CIELAB exposure-normalised as in the scores: the Euclidean distance (CIE76, cheap: it compares the
+    eq. 10 forms), or with ``de2000`` the CIEDE2000 difference that Delta E averages (the BIC's residual)."""
 
     def __init__(self, rgb):
-        from .scores import exposure, rgb_to_lab
-        self._lab, self._ex = rgb_to_lab, exposure(rgb)
+        from .scores import ciede2000, exposure, rgb_to_lab
+        self._lab, self._de, self._ex = rgb_to_lab, ciede2000, exposure(rgb)
         self._ref = rgb_to_lab(rgb[_SUBSAMPLE] / self._ex)
 
-    def __call__(self, out):
-        return float(np.mean(np.linalg.norm(self._lab(out / self._ex) - self._ref, axis=-1)))
+    def __call__(self, out, de2000=False):
+        lab = self._lab(out / self._ex)
+        return float(np.mean(self._de(self._ref, lab) if de2000 else np.linalg.norm(lab - self._ref, axis=-1)))
 
 
-def _fit_axes(rgb, Y, axes, rhos, g, lab_error, jacobians=(False, True)):
-    """Steps 2-6 for given axes -> (StencilModel, its RGB on the subsampled grid ``(n, 3)``).
+def _fit_axes(rgb, Y, axes, rhos, g, lab_error, form=None):
+    """Steps 2-8 for given axes -> (StencilModel, its RGB on the subsampled grid ``(n, 3)``).
 
-    Eq. 10 is fitted in each form of ``jacobians`` (with and without 1 / k.h) and the one with the lower
-    CIELAB error kept; a marginal mode's refit keeps the form chosen on the accepted axes."""
+    Step 8, the form of eq. 10's lobes, ``(jacobian, stencil_highlight)``: with and without 1 / k.h, the
+    one with the lower CIELAB error; then, with modes, the highlight shaped by the dominant mode's stencil,
+    kept if it lowers the error further.  ``form`` given (a marginal mode's refit): that form only."""
     R = anisotropic_residual(Y) if len(axes) else None
     Fs = [stencil(g["h"], p) for p in axes]
     ridges = [F > 0.97 for F in Fs]
@@ -456,6 +479,7 @@ def _fit_axes(rgb, Y, axes, rhos, g, lab_error, jacobians=(False, True)):
     # order: dominant (brightest ridge) on top
     order = np.argsort([-(md.kd + md.ks) * grid.LUMA @ np.array(md.m) for md in modes]) if modes else []
     modes = [modes[i] for i in order]
+    Fs = [Fs[i] for i in order]
     Ms = [Ms[i] for i in order]
     T = [T[i] for i in order]
     rhos = [float(rhos[i]) for i in order]
@@ -475,27 +499,44 @@ def _fit_axes(rgb, Y, axes, rhos, g, lab_error, jacobians=(False, True)):
     # step 6 on the subsampled grid (every SPEC_STRIDE-th azimuth of both directions)
     sub = _SUBSAMPLE
     gs = {key: g[key][sub] for key in ("hz", "cp", "kh", "schlick")}
+    if modes:
+        gs["top"] = (Fs[0][sub], modes[0].alpha)
     Ts, Mss, bgs = [x[sub] for x in T], [x[sub] for x in Ms], bg[sub]
     Bs = merge_modes(Ts, Mss, [0.0] * max(len(modes) - 1, 0), bgs) * np.ones(bgs.shape)
-    fits = [_finish(rgb[sub], Ts, Mss, bgs, Bs, gs, jac) for jac in jacobians]
-    errors = [lab_error(f[1]) for f in fits]
-    (jacobian, s1, s2, m_s, m_s2, beta), out = fits[int(np.argmin(errors))]
+    fits = {}
+
+    def run(f):
+        fits[f] = _finish(rgb[sub], Ts, Mss, bgs, Bs, gs, f)
+        fits[f] = fits[f] + (lab_error(fits[f][1]),)
+        return fits[f]
+    if form is None:
+        form = min([(False, False), (True, False)], key=lambda f: run(f)[2])
+        if modes and run((form[0], True))[2] < fits[form][2]:
+            form = (form[0], True)
+    else:
+        run(form)
+    (s1, s2, m_s, m_s2, beta), out, _ = fits[form]
     model = StencilModel(
         modes=tuple(modes), beta=tuple(beta), r=r, m_bg=tuple(float(x) for x in m_bg),
         k=s1[0], alpha_s=s1[1], a_s=s1[2], b_s=s1[3], f_s=s1[4], dw_ratio=DW_RATIO,
         k2=s2[0], alpha_s2=s2[1], a_s2=s2[2], b_s2=s2[3], f_s2=s2[4], m_s=m_s, m_s2=m_s2, a_r=a_r, b_r=b_r,
-        jacobian=bool(jacobian),
-        meta={"rho": rhos, "eq10_lab_error": {("jacobian" if j else "plain"): e for j, e in zip(jacobians, errors)}},
+        jacobian=form[0], stencil_highlight=form[1],
+        meta={"rho": rhos, "eq10_lab_error": {_FORMS[f]: v[2] for f, v in fits.items()}},
     )
     return model, out
 
 
-def _finish(rgb, T, Ms, bg, B, g, jacobian):
-    """Step 6 on the merged modes ``B`` (beta = 0), all ``(n, ...)`` on the subsampled grid: eq. 10's lobes
-    and colours, then beta (eq. 8) by closed-form least squares, top interface first (B_S is linear in B)
-    -> (parameters, the model's RGB there)."""
-    s1, s2, m_s, m_s2 = _fit_specular(rgb, B, g, jacobian)
-    lin = lambda X: apply_specular(X, g["hz"], g["cp"], s1, s2, m_s, m_s2, g["kh"], jacobian)  # noqa: E731
+_FORMS = {(False, False): "eq. 10", (True, False): "1 / k.h", (False, True): "stencil",
+          (True, True): "1 / k.h, stencil"}
+
+
+def _finish(rgb, T, Ms, bg, B, g, form):
+    """Steps 6-7 on the merged modes ``B`` (beta = 0), all ``(n, ...)`` on the subsampled grid, for the eq. 10
+    form ``(jacobian, stencil_highlight)``: the lobes and colours, then beta (eq. 8) by closed-form least
+    squares, top interface first (B_S is linear in B) -> (parameters, the model's RGB there)."""
+    scale = specular_scale(g["kh"], form[0], g["top"] if form[1] else None)
+    s1, s2, m_s, m_s2 = _fit_specular(rgb, B, g, scale)
+    lin = lambda X: apply_specular(X, g["hz"], g["cp"], s1, s2, m_s, m_s2, g["kh"], scale)  # noqa: E731
     beta = [0.0] * max(len(T) - 1, 0)
     for j in range(len(beta)):
         b1 = list(beta)
@@ -505,7 +546,7 @@ def _finish(rgb, T, Ms, bg, B, g, jacobian):
         if den > 0:
             beta[j] = float(np.clip(np.sum(D * (rgb - lin(B))) / den, 0.0, 1.0))
             B = merge_modes(T, Ms, beta, bg) * np.ones(B.shape)
-    return (jacobian, s1, s2, m_s, m_s2, beta), np.maximum(lin(B), 0.0)
+    return (s1, s2, m_s, m_s2, beta), np.maximum(lin(B), 0.0)
 
 
 def fit_file(path):

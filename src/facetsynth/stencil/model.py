@@ -18,13 +18,17 @@ bottom one):
                         B_S = P_0 + (S - 1) Y(P_0) (l_1 m_s + l_2 m_s2) / (l_1 + l_2)
                                                                  (coloured highlights)
   with cp = cos th_i cos th_v, k.h = cos of the half angle (wi . H), Y the
-  Rec. 709 luminance; the division by k.h only with ``jacobian``.  The
-  defaults (k2 = 0, f_s = f_s2 = 0, jacobian False, m_s = None, a_r = 1,
-  b_r = 0) are the paper's equations; the second lobe, the Schlick term
-  f_s (1 - k.h)^5 (Schlick 1994, the Fresnel factor of a microfacet lobe),
-  the Jacobian 1 / k.h (the half-vector density's, as in the lobes of Kurt
-  et al. and Ashikhmin-Shirley), the highlight colours and the background's
-  elevation scaling are the fit's extensions (docs/stencil.md: what each costs).
+  Rec. 709 luminance; the division by k.h only with ``jacobian``, and with
+  ``stencil_highlight`` both lobes are multiplied by F_0^alpha_0, the
+  dominant mode's stencil and exponent (eqs. 2, 4), so the highlight follows
+  that mode's axis.  The defaults (k2 = 0, f_s = f_s2 = 0, jacobian and
+  stencil_highlight False, m_s = None, a_r = 1, b_r = 0) are the paper's
+  equations; the second lobe, the Schlick term f_s (1 - k.h)^5 (Schlick
+  1994, the Fresnel factor of a microfacet lobe), the Jacobian 1 / k.h (the
+  half-vector density's, as in the lobes of Kurt et al. and
+  Ashikhmin-Shirley), the stencil-shaped highlight, the highlight colours
+  and the background's elevation scaling are the fit's extensions
+  (docs/stencil.md: what each costs).
 * retro-reflection (sec. 5.1): a mode with ``retro=True`` computes its H from
   (-wi_x, -wi_y, wi_z), i.e. phi_i + pi.
 
@@ -45,8 +49,8 @@ from .grid import LUMA
 __all__ = [
     "COS_FLOOR", "Mode", "StencilModel", "half_vector", "axis_vector", "stencil",
     "elevation_scale", "mode_luminance", "mode_colour", "support_mask", "merge_modes",
-    "NO_LOBE", "specular_lobe", "specular_factor", "lobes", "highlight_basis", "apply_specular", "background",
-    "evaluate", "evaluate_utia",
+    "NO_LOBE", "specular_lobe", "specular_scale", "specular_factor", "lobes", "highlight_basis", "apply_specular",
+    "background", "evaluate", "evaluate_utia",
 ]
 
 COS_FLOOR = np.cos(np.deg2rad(85.0))
@@ -91,6 +95,7 @@ class StencilModel:
     f_s: float = 0.0                      # Schlick term of each lobe (0: eq. 10)
     f_s2: float = 0.0
     jacobian: bool = False                # lobes divided by k.h (False: eq. 10)
+    stencil_highlight: bool = False       # lobes times F_0^alpha_0 of the dominant mode (False: eq. 10)
     meta: dict = field(default_factory=dict, compare=False)
 
     def with_modes(self, modes):
@@ -174,23 +179,31 @@ def merge_modes(T, M, beta, background):
     return P
 
 
-def specular_lobe(hz, cos_product, lobe, kh=1.0, jacobian=False):
+def specular_lobe(hz, cos_product, lobe, kh=1.0, scale=1.0):
     """One lobe of eq. 10's max, ``lobe = (k, alpha_s, a_s, b_s[, f_s])``:
-    k H_z^alpha_s max(0, a_s + (b_s + f_s (1 - k.h)^5) / cp), divided by k.h with ``jacobian``.
+    k H_z^alpha_s max(0, a_s + (b_s + f_s (1 - k.h)^5) / cp) times ``scale`` (:func:`specular_scale`).
 
     ``kh`` = wi . H, floored at COS_FLOOR; kh = 1 (the default) leaves out the Schlick term.
     """
     k, alpha_s, a_s, b_s, f_s = tuple(lobe) + (0.0,) * (5 - len(lobe))
     kh = np.clip(kh, COS_FLOOR, 1.0)
     s = np.maximum(elevation_scale(a_s, b_s + f_s * (1.0 - kh) ** 5, cos_product), 0.0)
-    out = k * np.power(np.clip(hz, 0.0, 1.0), alpha_s) * s
-    return out / kh if jacobian else out
+    return k * np.power(np.clip(hz, 0.0, 1.0), alpha_s) * s * scale
 
 
-def specular_factor(hz, cos_product, lobe1, lobe2=NO_LOBE, kh=1.0, jacobian=False):
+def specular_scale(kh, jacobian=False, top=None):
+    """The factor both eq. 10 lobes share: 1 / k.h (k.h floored at COS_FLOOR) with ``jacobian``, times
+    F_0^alpha_0 with ``top = (F_0, alpha_0)``, the dominant mode's stencil and exponent (eqs. 2, 4)."""
+    scale = 1.0 / np.clip(kh, COS_FLOOR, 1.0) if jacobian else 1.0
+    if top is not None:
+        scale = scale * np.power(np.clip(top[0], 0.0, 1.0), top[1])
+    return scale
+
+
+def specular_factor(hz, cos_product, lobe1, lobe2=NO_LOBE, kh=1.0, scale=1.0):
     """S = max(1, l_1 + l_2), the sum of the lobes (eq. 10; the second lobe is zero with k2 = 0)."""
-    return np.maximum(1.0, specular_lobe(hz, cos_product, lobe1, kh, jacobian)
-                      + specular_lobe(hz, cos_product, lobe2, kh, jacobian))
+    return np.maximum(1.0, specular_lobe(hz, cos_product, lobe1, kh, scale)
+                      + specular_lobe(hz, cos_product, lobe2, kh, scale))
 
 
 def lobes(model):
@@ -199,24 +212,24 @@ def lobes(model):
             (model.k2, model.alpha_s2, model.a_s2, model.b_s2, model.f_s2))
 
 
-def highlight_basis(B, hz, cos_product, lobe1, lobe2, kh=1.0, jacobian=False):
+def highlight_basis(B, hz, cos_product, lobe1, lobe2, kh=1.0, scale=1.0):
     """The boost (S - 1) Y(B) of eq. 10 split between the lobes in proportion l_1 : l_2, ``(..., 2)``."""
-    l1 = specular_lobe(hz, cos_product, lobe1, kh, jacobian)
-    l2 = specular_lobe(hz, cos_product, lobe2, kh, jacobian)
+    l1 = specular_lobe(hz, cos_product, lobe1, kh, scale)
+    l2 = specular_lobe(hz, cos_product, lobe2, kh, scale)
     tot = l1 + l2
     boost = (np.maximum(tot, 1.0) - 1.0) * (np.asarray(B, float) @ LUMA) / np.maximum(tot, 1e-30)
     return np.stack([boost * l1, boost * l2], -1)
 
 
-def apply_specular(B, hz, cos_product, lobe1, lobe2=NO_LOBE, m_s=None, m_s2=None, kh=1.0, jacobian=False):
+def apply_specular(B, hz, cos_product, lobe1, lobe2=NO_LOBE, m_s=None, m_s2=None, kh=1.0, scale=1.0):
     """Eq. 10.  Without highlight colours (m_s None) B_S = B S, as in the paper; with them the
     boost (S - 1) Y(B) is split between the lobes (:func:`highlight_basis`) and each share takes
     its lobe's colour: B_S = B + X_1 m_s + X_2 m_s2.  Linear in B; ``B (..., 3)``.
     """
     B = np.asarray(B, float)
     if m_s is None:
-        return B * specular_factor(hz, cos_product, lobe1, lobe2, kh, jacobian)[..., None]
-    X = highlight_basis(B, hz, cos_product, lobe1, lobe2, kh, jacobian)
+        return B * specular_factor(hz, cos_product, lobe1, lobe2, kh, scale)[..., None]
+    X = highlight_basis(B, hz, cos_product, lobe1, lobe2, kh, scale)
     m_s2 = m_s if m_s2 is None else m_s2
     return B + X[..., :1] * np.asarray(m_s, float) + X[..., 1:] * np.asarray(m_s2, float)
 
@@ -243,12 +256,14 @@ def mode_terms(model, wi, wo):
 def evaluate(model, wi, wo):
     """The fitted BRDF B_S(wi, wo) ``(..., 3)`` in 1/sr (eqs. 2-10); zero below the horizon."""
     wi, wo = np.broadcast_arrays(np.asarray(wi, float), np.asarray(wo, float))
-    _, M, T = mode_terms(model, wi, wo)
+    F, M, T = mode_terms(model, wi, wo)
     cp = _cos_product(wi, wo)
     B = merge_modes(T, M, model.beta, background(model, cp)) * np.ones(wi.shape[:-1] + (1,))
     h = half_vector(wi, wo)
-    out = apply_specular(B, h[..., 2], cp, *lobes(model), model.m_s, model.m_s2, kh=np.sum(wi * h, -1),
-                         jacobian=model.jacobian)
+    kh = np.sum(wi * h, -1)
+    top = (F[0], model.modes[0].alpha) if model.stencil_highlight and model.modes else None
+    out = apply_specular(B, h[..., 2], cp, *lobes(model), model.m_s, model.m_s2, kh=kh,
+                         scale=specular_scale(kh, model.jacobian, top))
     ok = (wi[..., 2] > 0) & (wo[..., 2] > 0)
     out = np.where(ok[..., None], np.maximum(out, 0.0), 0.0)
     return np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0)
