@@ -14,6 +14,10 @@ import pytest
 from facetsynth.tables import SupportTable
 from test_workflow import NOISE_FREE, make_workdir, metrics, snakemake
 
+# five samples through capture .. synthesize (5 min on 2 cores): with the whole-workflow tests in make test-scenes,
+# so that make test stays near 10 min
+pytestmark = pytest.mark.scenes
+
 SCENES = ("wallpaper", "satin", "brushed")
 ROTATIONS = {"brushed-turned-r60": 60, "brushed-turned-r120": 120}   # further captures of "brushed-turned"
 OVERRIDES = """virtual:
