@@ -59,8 +59,8 @@ from pathlib import Path
 import numpy as np
 
 from . import grid
-from .model import (COS_FLOOR, NO_LOBE, Mode, StencilModel, apply_specular, elevation_scale, half_vector,
-                    highlight_basis, merge_modes, mode_colour, mode_luminance, specular_scale, stencil, support_mask)
+from .model import (COS_FLOOR, NO_LOBE, Mode, StencilModel, apply_shares, elevation_scale, half_vector,
+                    highlight_shares, merge_modes, mode_colour, mode_luminance, specular_scale, stencil, support_mask)
 
 __all__ = ["RHO_MIN", "RHO_CAND", "MODE_PARAMS", "MAX_MODES", "SEPARATION_DEG", "axis_error_deg", "detect_axes", "fit",
            "fit_file"]
@@ -351,13 +351,13 @@ def _fit_specular(rgb, B, g, scale):
     The ratio t = Y / Y(B) where it exceeds 1.02 is fitted by one lobe, then a second lobe
     on the rest, then each again given the other (each by :func:`_fit_lobe`).
     m_s, m_s2: per-channel non-negative linear least squares of data - B on the
-    two lobes' shares of the boost (S - 1) Y(B) (:func:`highlight_basis`), where
-    S > 1: eq. 5's colour fit applied to the highlight.
+    two lobes' shares of the boost (S - 1) Y(B) (:func:`highlight_shares`), where
+    S > 1: eq. 5's colour fit applied to the highlight.  Also returns those shares per unit luminance.
     """
     Y, YB = rgb @ grid.LUMA, B @ grid.LUMA
     sel = (Y > 1.02 * YB) & (YB > 1e-12 * max(Y.max(), 1e-300))
     if sel.sum() < 3:
-        return NO_LOBE, NO_LOBE, None, None
+        return NO_LOBE, NO_LOBE, None, None, np.zeros(Y.shape + (2,))
     icp = 1.0 / g["cp"][sel]
     cols = np.stack([np.ones_like(icp), icp, icp * g["schlick"][sel]], 1)
     d = _LobeData(Y[sel] / YB[sel], np.clip(g["hz"][sel], 0.0, 1.0),
@@ -368,15 +368,16 @@ def _fit_specular(rgb, B, g, scale):
         p1 = _fit_lobe(d, d.lobe(p2), near=p1[1])
         p2 = _fit_lobe(d, d.lobe(p1), near=p2[1])
     s1, s2 = _lobe_params(*p1[1:]), _lobe_params(*p2[1:])
-    X = highlight_basis(B, g["hz"], g["cp"], s1, s2, g["kh"], scale)   # (..., 2)
+    shares = highlight_shares(g["hz"], g["cp"], s1, s2, g["kh"], scale)
+    X = YB[:, None] * shares                                   # the boost per lobe, (n, 2)
     on = X.sum(-1) > 1e-3 * YB
     if not on.any():
-        return s1, s2, None, None
+        return s1, s2, None, None, shares
     wt = 1.0 / np.maximum(Y[on], 1e-12 * max(Y.max(), 1e-300)) ** (4.0 / 3.0)
     Xw = X[on] * wt[:, None]
     G, rhs = X[on].T @ Xw, Xw.T @ (rgb[on] - B[on])                # (2, 2), (2, 3)
     cols = _nnls_normal(np.broadcast_to(G, (3, 2, 2)), rhs.T)       # (3 channels, 2 lobes)
-    return s1, s2, tuple(float(x) for x in cols[:, 0]), tuple(float(x) for x in cols[:, 1])
+    return s1, s2, tuple(float(x) for x in cols[:, 0]), tuple(float(x) for x in cols[:, 1]), shares
 
 
 def _fit_background(level, m_bg):
@@ -506,8 +507,8 @@ def _fit_axes(rgb, Y, axes, rhos, g, lab_error, form=None):
     fits = {}
 
     def run(f):
-        fits[f] = _finish(rgb[sub], Ts, Mss, bgs, Bs, gs, f)
-        fits[f] = fits[f] + (lab_error(fits[f][1]),)
+        params, out = _finish(rgb[sub], Ts, Mss, bgs, Bs, gs, f)
+        fits[f] = (params, out, lab_error(out))
         return fits[f]
     if form is None:
         form = min([(False, False), (True, False)], key=lambda f: run(f)[2])
@@ -535,8 +536,8 @@ def _finish(rgb, T, Ms, bg, B, g, form):
     form ``(jacobian, stencil_highlight)``: the lobes and colours, then beta (eq. 8) by closed-form least
     squares, top interface first (B_S is linear in B) -> (parameters, the model's RGB there)."""
     scale = specular_scale(g["kh"], form[0], g["top"] if form[1] else None)
-    s1, s2, m_s, m_s2 = _fit_specular(rgb, B, g, scale)
-    lin = lambda X: apply_specular(X, g["hz"], g["cp"], s1, s2, m_s, m_s2, g["kh"], scale)  # noqa: E731
+    s1, s2, m_s, m_s2, shares = _fit_specular(rgb, B, g, scale)
+    lin = lambda X: apply_shares(X, shares, m_s, m_s2)  # noqa: E731  (the lobes do not depend on B)
     beta = [0.0] * max(len(T) - 1, 0)
     for j in range(len(beta)):
         b1 = list(beta)

@@ -49,7 +49,8 @@ from .grid import LUMA
 __all__ = [
     "COS_FLOOR", "Mode", "StencilModel", "half_vector", "axis_vector", "stencil",
     "elevation_scale", "mode_luminance", "mode_colour", "support_mask", "merge_modes",
-    "NO_LOBE", "specular_lobe", "specular_scale", "specular_factor", "lobes", "highlight_basis", "apply_specular",
+    "NO_LOBE", "specular_lobe", "specular_scale", "specular_factor", "lobes", "highlight_shares", "highlight_basis",
+    "apply_shares", "apply_specular",
     "background", "evaluate", "evaluate_utia",
 ]
 
@@ -212,13 +213,30 @@ def lobes(model):
             (model.k2, model.alpha_s2, model.a_s2, model.b_s2, model.f_s2))
 
 
-def highlight_basis(B, hz, cos_product, lobe1, lobe2, kh=1.0, scale=1.0):
-    """The boost (S - 1) Y(B) of eq. 10 split between the lobes in proportion l_1 : l_2, ``(..., 2)``."""
+def highlight_shares(hz, cos_product, lobe1, lobe2, kh=1.0, scale=1.0):
+    """Eq. 10's boost per unit luminance, split between the lobes in proportion l_1 : l_2,
+    ``(..., 2)``: (S - 1) l_i / (l_1 + l_2).  They sum to S - 1 and do not depend on B."""
     l1 = specular_lobe(hz, cos_product, lobe1, kh, scale)
     l2 = specular_lobe(hz, cos_product, lobe2, kh, scale)
     tot = l1 + l2
-    boost = (np.maximum(tot, 1.0) - 1.0) * (np.asarray(B, float) @ LUMA) / np.maximum(tot, 1e-30)
-    return np.stack([boost * l1, boost * l2], -1)
+    f = (np.maximum(tot, 1.0) - 1.0) / np.maximum(tot, 1e-30)
+    return np.stack([f * l1, f * l2], -1)
+
+
+def highlight_basis(B, hz, cos_product, lobe1, lobe2, kh=1.0, scale=1.0):
+    """The boost (S - 1) Y(B) of eq. 10 split between the lobes in proportion l_1 : l_2, ``(..., 2)``."""
+    return (np.asarray(B, float) @ LUMA)[..., None] * highlight_shares(hz, cos_product, lobe1, lobe2, kh, scale)
+
+
+def apply_shares(B, shares, m_s=None, m_s2=None):
+    """Eq. 10 from :func:`highlight_shares`: B S = B (1 + sum of the shares) without highlight colours (m_s
+    None), else B + Y(B) (share_1 m_s + share_2 m_s2).  Linear in B; ``B (..., 3)``."""
+    B = np.asarray(B, float)
+    if m_s is None:
+        return B * (1.0 + shares.sum(-1))[..., None]
+    m_s2 = m_s if m_s2 is None else m_s2
+    colour = shares[..., :1] * np.asarray(m_s, float) + shares[..., 1:] * np.asarray(m_s2, float)
+    return B + (B @ LUMA)[..., None] * colour
 
 
 def apply_specular(B, hz, cos_product, lobe1, lobe2=NO_LOBE, m_s=None, m_s2=None, kh=1.0, scale=1.0):
@@ -226,12 +244,7 @@ def apply_specular(B, hz, cos_product, lobe1, lobe2=NO_LOBE, m_s=None, m_s2=None
     boost (S - 1) Y(B) is split between the lobes (:func:`highlight_basis`) and each share takes
     its lobe's colour: B_S = B + X_1 m_s + X_2 m_s2.  Linear in B; ``B (..., 3)``.
     """
-    B = np.asarray(B, float)
-    if m_s is None:
-        return B * specular_factor(hz, cos_product, lobe1, lobe2, kh, scale)[..., None]
-    X = highlight_basis(B, hz, cos_product, lobe1, lobe2, kh, scale)
-    m_s2 = m_s if m_s2 is None else m_s2
-    return B + X[..., :1] * np.asarray(m_s, float) + X[..., 1:] * np.asarray(m_s2, float)
+    return apply_shares(B, highlight_shares(hz, cos_product, lobe1, lobe2, kh, scale), m_s, m_s2)
 
 
 def background(model, cos_product):
