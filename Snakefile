@@ -28,10 +28,11 @@ include: "workflow/rules/report.smk"
 
 
 def final_outputs(sample):
-    """What a user takes away: the fitted SVBRDF with its stencil models, and for a sample whose
+    """What a user takes away: the fitted SVBRDF with its stencil models and self-check, and for a sample whose
     held-out views the virtual rig can render (a virtual one, or the rig with the virtual camera)
     the held-out validation."""
-    outputs = [f"results/{sample}/svbrdf", f"results/{sample}/stencil_fit/metrics.json"]
+    outputs = [f"results/{sample}/svbrdf", f"results/{sample}/stencil_fit/metrics.json",
+               f"results/{sample}/selfcheck/metrics.json"]   # every sample: the fit against its own frames
     if rendered_truth(sample) is not None:
         outputs.append(f"results/{sample}/validate/metrics.json")
     outputs.append(f"results/{sample}/export/metrics.json")   # the portable glTF material and its loss

@@ -16,7 +16,8 @@ from pathlib import Path
 
 #: The fitting stages, capture to params: ``wall_s`` is the sum of their benchmark seconds. Capture
 #: and hdr do not depend on the preset; ``preset_s`` sums the stages that do (rectify to params).
-FIT_STAGES = ("capture", "hdr", "rectify", "separate", "resample", "partial_ndf", "cluster", "synthesize", "params")
+FIT_STAGES = ("capture", "hdr", "rectify", "separate", "resample", "partial_ndf", "cluster", "synthesize", "params",
+              "refine")
 PRESET_STAGES = FIT_STAGES[2:]
 
 COLUMNS = (["preset", "scene", "wall_s", "preset_s", "cpu_s", "peak_mem_mb"] + [f"{s}_s" for s in FIT_STAGES]
@@ -133,7 +134,7 @@ def folder_bytes(*paths: str | Path) -> int:
 
 def scale_rows(root: str | Path, points: int, frames: int) -> list[dict]:
     """scale.csv's rows of one run (``results/{sample}``): one per stage (FIT_STAGES), ``bytes_written``
-    the size of the stage's output folder (params: with ``svbrdf/``), and ``total`` over TOTAL_STAGES
+    the size of the stage's output folder (refine: with ``svbrdf/``), and ``total`` over TOTAL_STAGES
     (wall and CPU summed, RSS the largest, bytes summed)."""
     root = Path(root)
     rows = []
@@ -141,7 +142,7 @@ def scale_rows(root: str | Path, points: int, frames: int) -> list[dict]:
         cost = stage_cost(root, stage)
         if cost is None:
             continue
-        outputs = [root / stage] + ([root / "svbrdf"] if stage == "params" else [])
+        outputs = [root / stage] + ([root / "svbrdf"] if stage == "refine" else [])
         rows.append({"points": points, "frames": frames, "stage": stage, **cost,
                      "bytes_written": folder_bytes(*outputs)})
     fit = [r for r in rows if r["stage"] in TOTAL_STAGES]

@@ -56,13 +56,16 @@ class FrameRenderer:
         m = self.mask.reshape(self.camera.height, s, self.camera.width, s)
         return m.all(axis=(1, 3))
 
-    def radiance(self, light_position, light_intensity) -> np.ndarray:
-        """(H, W, 3) float32 radiance I of the frame, box-filtered over sub-pixels."""
+    def radiance(self, light_position, light_intensity, diffuse_only: bool = False) -> np.ndarray:
+        """(H, W, 3) float32 radiance I of the frame, box-filtered over sub-pixels; ``diffuse_only``: the
+        model's diffuse term kd/pi (n.i) L / r^2 alone."""
         wi, r2 = light_geometry(self.points, np.asarray(light_position, float))
         value = np.zeros((len(self.index), 3))
         for a in range(0, len(self.index), CHUNK):
             sl = slice(a, a + CHUNK)
-            if self.area_o is None:
+            if diffuse_only:
+                value[sl] = self.model.kd[self.index[sl]] / np.pi
+            elif self.area_o is None:
                 value[sl] = self.model.eval_index(self.index[sl], wi[sl], self.wo[sl])
             else:
                 value[sl] = self.model.eval_index(self.index[sl], wi[sl], self.wo[sl], self.area_o[sl])

@@ -45,6 +45,15 @@ STAGES: list[tuple[str, str, Figures | Callable[[dict], list[str]]]] = [
                                                ("stalled", "stalled_representatives", "d")]),
     ("params", "params/metrics.json", [("materials", "materials", "d"), ("eta median", "eta_median", ".3f"),
                                        ("ks vs truth", "ks_median_rel_error", ".3f")]),
+    ("refine", "refine/metrics.json", [("samples rel. L2", "fitting_samples_rel_l2_after", ".3f"),
+                                       ("before", "fitting_samples_rel_l2_before", ".3f"),
+                                       ("ks vs truth", "ks_median_rel_error", ".3f")]),
+    ("selfcheck", "selfcheck/metrics.json",
+     lambda m: [f"{name} rel. L2 {m[name]['rel_l2']:.3f} (specular {m[name]['specular_rel_l2']:.3f}, worst frame "
+                f"{m[name]['frame_psnr_worst_db']:.1f} dB)" for name in ("relit", "heldout")
+                if isinstance(m.get(name), dict) and m[name].get("rel_l2") is not None
+                and m[name].get("specular_rel_l2") is not None and m[name].get("frame_psnr_worst_db") is not None]
+     + (["POOR FIT"] if m.get("poor_fit") else [])),
     ("validate", "validate/metrics.json", [("held-out rel. L2", "heldout_rel_l2", ".3f"),
                                            ("Ward", "baseline_ward_rel_l2", ".3f"),
                                            ("PSNR dB", "heldout_psnr_db", ".1f")]),

@@ -1,5 +1,6 @@
 # Remaining parameters (paper 002 sec. 5.4): ks, normalised NDF, shadowing (eq. 5), eta by
-# Levenberg-Marquardt on eqs. 19-20 -> the fitted SVBRDF folder results/{sample}/svbrdf/.
+# Levenberg-Marquardt on eqs. 19-20 -> results/{sample}/params/svbrdf/; then every point's kd and ks fitted to
+# its own samples (issue 29, facetsynth.refine) -> the fitted SVBRDF folder results/{sample}/svbrdf/.
 # Inputs from cluster and synthesize (issue 4); reachable as a target only.
 
 
@@ -19,7 +20,7 @@ rule params:
         synthesis_confidence="results/{sample}/synthesize/confidence.npy",
         grid="results/{sample}/synthesize/grid.json",
     output:
-        svbrdf=directory("results/{sample}/svbrdf"),
+        svbrdf=directory("results/{sample}/params/svbrdf"),   # the pipeline's model: refine's start
         metrics="results/{sample}/params/metrics.json",
     params:
         grazing_deg=config["partial_ndf"]["grazing_deg"],
@@ -33,3 +34,25 @@ rule params:
         mem_mb=3500,   # make bench-scale: 2.3 GB peak at 800^2 (3.2 GB in an earlier run)
     script:
         "../scripts/params.py"
+
+
+rule refine:
+    input:
+        model="results/{sample}/params/svbrdf",
+        geometry="results/{sample}/rectify/geometry.json",
+        specular="results/{sample}/separate/specular.npy",
+        valid="results/{sample}/separate/valid.npy",
+    output:
+        svbrdf=directory("results/{sample}/svbrdf"),
+        metrics="results/{sample}/refine/metrics.json",
+    params:
+        **config["refine"],
+    log:
+        "results/{sample}/logs/refine.log",
+    benchmark:
+        "results/{sample}/benchmarks/refine.tsv"
+    threads: 2   # tiles of points in parallel
+    resources:
+        mem_mb=1500,   # demo, 168^2 points x 1360 lights: 0.6 GB peak
+    script:
+        "../scripts/refine.py"

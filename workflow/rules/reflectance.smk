@@ -14,6 +14,7 @@ rule separate:
         metrics="results/{sample}/separate/metrics.json",
     params:
         **config["separate"],
+        heldout_every=config["selfcheck"]["heldout_every"],   # those lights are kept out of every later stage
     log:
         "results/{sample}/logs/separate.log",
     benchmark:

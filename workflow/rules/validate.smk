@@ -122,7 +122,7 @@ rule validate:
         views=list(HELDOUT_VIEWS),
         # the fitting stages of each method (Snakemake benchmark: files, read when this job runs)
         fit_benchmarks=lambda wc: [f"results/{wc.sample}/benchmarks/{s}.tsv"
-                                   for s in ("partial_ndf", "cluster", "synthesize", "params")],
+                                   for s in ("partial_ndf", "cluster", "synthesize", "params", "refine")],
         ward_benchmark=lambda wc: f"results/{wc.sample}/benchmarks/baseline_ward.tsv",
         images_per_view=config["validate"]["images_per_view"],
     log:
@@ -134,3 +134,26 @@ rule validate:
         mem_mb=3000,
     script:
         "../scripts/validate.py"
+
+
+rule selfcheck:
+    input:
+        svbrdf="results/{sample}/svbrdf",
+        manifest="results/{sample}/hdr/manifest.json",
+        frames="results/{sample}/hdr/frames",
+    output:
+        metrics="results/{sample}/selfcheck/metrics.json",
+        images=report(directory("results/{sample}/selfcheck/images"), patterns=["{subset}_worst.png"],
+                      caption="../report/selfcheck.rst", category="{sample}", subcategory="5 held-out views",
+                      labels={"figure": "self-check", "subset": "{subset}"}),
+    params:
+        **config["selfcheck"],
+    log:
+        "results/{sample}/logs/selfcheck.log",
+    benchmark:
+        "results/{sample}/benchmarks/selfcheck.tsv"
+    threads: 1
+    resources:
+        mem_mb=1000,
+    script:
+        "../scripts/selfcheck.py"

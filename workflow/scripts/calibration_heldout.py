@@ -123,7 +123,7 @@ def main() -> None:
                 validate.run(svbrdf=f"results/{s}/svbrdf", ward=f"results/{s}/baseline/ward", heldout=views,
                              out_dir=out / "predictions", metrics_out=out / "metrics.json", images_out=out / "images",
                              fit_benchmarks=[f"results/{s}/benchmarks/{st}.tsv"
-                                             for st in ("partial_ndf", "cluster", "synthesize", "params")],
+                                             for st in ("partial_ndf", "cluster", "synthesize", "params", "refine")],
                              ward_benchmark=f"results/{s}/benchmarks/baseline_ward.tsv", rig=args.rig)
             m = read_json(out / "metrics.json")
             record.setdefault(label, {})[scoring] = {k: m.get(k) for k in ("heldout_rel_l2", "heldout_specular_rel_l2",

@@ -11,6 +11,7 @@ import numpy as np
 from ..fileio import HALF, as_half, atomic_path, read_frame, write_exr, write_json
 from ..frames import imap, map_frames
 from ..render import light_geometry
+from ..selfcheck import heldout_lights
 from ..separation import brdf_samples, diffuse_level, specular_residual
 from .common import RectifiedCapture, StageSettings, flag_degenerate, tiles
 
@@ -33,6 +34,8 @@ class Settings(StageSettings):
     threshold: float = 0.05   # eq. 9: samples darker than threshold x the point's average intensity are left out
     lowest: float = 0.03      # eq. 9 averages this fraction of the qualifying samples, those of lowest channel
                               # mean (0: eq. 9's minimum, per channel)
+    heldout_every: int = 0    # config selfcheck.heldout_every: every k-th frame's samples are invalid, so that no
+                              # later stage sees those lights (facetsynth.selfcheck.heldout_lights; 0: none)
 
 
 def run(geometry: str | Path, kd_out: str | Path, specular_out: str | Path, valid_out: str | Path,
@@ -43,8 +46,8 @@ def run(geometry: str | Path, kd_out: str | Path, specular_out: str | Path, vali
     Writes ``kd`` (EXR on the rectified grid), the specular residual (P, F, 3) in half floats
     (:func:`~facetsynth.fileio.as_half`) and the sample validity (P, F) as memory-mappable .npy
     (frames are streamed in; memory does not grow with the sample size).
-    Invalid samples: saturated, or a point outside the camera's view. Frames are read on ``threads``
-    threads.
+    Invalid samples: saturated, a point outside the camera's view, or a light held out for the self-check
+    (``settings.heldout_every``). Frames are read on ``threads`` threads.
     """
     capture = RectifiedCapture.load(geometry)
     n_points, n_frames = capture.n_points, len(capture.frame_files)
@@ -64,6 +67,7 @@ def run(geometry: str | Path, kd_out: str | Path, specular_out: str | Path, vali
     dark = int((kd.sum(axis=1) == 0).sum())
     metrics = {"ground_truth": capture.truth_scene is not None, "points": n_points, "frames": n_frames,
                "threshold": settings.threshold, "lowest": settings.lowest,
+               "heldout_frames": int(heldout_lights(n_frames, settings.heldout_every).sum()),
                "points_without_diffuse_estimate": dark}
     lit = capture.visible & (kd.sum(axis=1) > 0)
     metrics["specular_signal_fraction"] = float(signal[lit].mean()) if lit.any() else 0.0
@@ -89,6 +93,7 @@ def _separate(capture: RectifiedCapture, settings: Settings, threads: int, scrat
     returns kd (P, 3) and which points show specular signal (P,)."""
     n_points, n_frames = capture.n_points, len(capture.frame_files)
     points = capture.points
+    held = heldout_lights(n_frames, settings.heldout_every)
     rho = np.lib.format.open_memmap(scratch, mode="w+", dtype=np.float32, shape=(n_points, n_frames, 3))
     valid = np.lib.format.open_memmap(valid_out, mode="w+", dtype=bool, shape=(n_points, n_frames))
 
@@ -96,7 +101,7 @@ def _separate(capture: RectifiedCapture, settings: Settings, threads: int, scrat
         radiance, saturated = read_frame(capture.frame_files[q])
         sample, _ = brdf_samples(radiance.reshape(-1, 1, 3), points,
                                  capture.light_positions[q:q + 1], capture.light_intensities[q:q + 1])
-        return sample[:, 0].astype(np.float32), capture.visible & ~saturated.ravel()
+        return sample[:, 0].astype(np.float32), capture.visible & ~saturated.ravel() & ~held[q]
 
     # written FRAME_BLOCK frames at a time as one block of columns: a frame alone would touch every
     # page of the (P, F, 3) file for 12 bytes a point
