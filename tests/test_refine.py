@@ -116,3 +116,66 @@ def test_frame_scores_against_known_errors():
     dark = FrameScores()
     dark.add(3, np.zeros((6, 5, 3)), np.zeros((6, 5, 3)), np.zeros((6, 5, 3)), mask)
     assert np.isnan(dark.rel_l2) and dark.worst_frame() is None       # no light: no score, not a perfect one
+
+
+# --- the NDF's stretch and turn (issue 29) ----------------------------------------------------------------
+
+from facetsynth import microfacet  # noqa: E402
+from facetsynth.grid import DirectionGrid  # noqa: E402
+from facetsynth.params import normalise  # noqa: E402
+from facetsynth.refine import best_turns, parabola_minimum, stretch  # noqa: E402
+
+
+def _ggx_table(grid, alpha_u, alpha_v, phi=0.0):
+    d = grid.directions.reshape(-1, 3)
+    return microfacet.ndf(d, alpha_u, alpha_v, phi).reshape(grid.shape)
+
+
+def test_stretch_maps_one_ggx_lobe_onto_another_of_scaled_roughness():
+    """GGX is a function of tan(theta_h) / alpha: stretching alpha 0.3's table by 0.5 is alpha 0.15's
+    (normalised; the grid's bilinear lookup is the only error: 1.5 % relative L2 on 64 x 256)."""
+    grid = DirectionGrid(64, 256)
+    wide, narrow = (normalise(_ggx_table(grid, a, a), grid)[0] for a in (0.3, 0.15))
+    made, _ = normalise(stretch(wide, grid, 0.5), grid)
+    w = grid.solid_angles
+    assert np.sqrt(np.sum((made - narrow) ** 2 * w) / np.sum(narrow**2 * w)) < 0.02
+    assert np.sqrt(np.sum((wide - narrow) ** 2 * w) / np.sum(narrow**2 * w)) > 0.5   # the test can fail
+    np.testing.assert_array_equal(stretch(wide, grid, 1.0), wide)
+
+
+def test_parabola_minimum_finds_the_vertex_and_stays_on_the_ladder():
+    x = np.array([0.6, 0.7, 0.8, 0.9, 1.0])
+    assert parabola_minimum(x, (x - 0.83) ** 2) == pytest.approx(0.83, abs=1e-12)
+    assert parabola_minimum(x, (x - 0.2) ** 2) == 0.6            # outside: the ladder's end
+    assert parabola_minimum(x, np.ones(5)) == 0.6                # flat: the first of the equal ones
+
+
+def test_best_turns_finds_the_representative_and_turn_that_made_the_samples():
+    """Samples made by representative 1 turned by 3 sectors (plus a constant denominator): the compiled
+    search returns exactly that candidate and a zero error; its error equals a numpy evaluation."""
+    grid = DirectionGrid(16, 64)
+    tables = np.stack([_ggx_table(grid, 0.1, 0.4, a) for a in (0.0, 0.5, 1.2)]).reshape(3, -1)
+    rng = np.random.default_rng(5)
+    n_points, per = 3, 300
+    h = rng.normal(size=(n_points * per, 3))
+    h[:, 2] = np.abs(h[:, 2]) + 1.0
+    h /= np.linalg.norm(h, axis=-1, keepdims=True)
+    t, p = grid.coordinates(h)
+    denom = rng.uniform(0.5, 1.5, h.shape[0])
+    u = rng.uniform(0.5, 2.0, h.shape[0])
+    k_true, rep_true, ks = [3, -2, 0], [1, 2, 0], [0.7, 0.2, 1.3]
+    r = np.concatenate([ks[x] * grid.lookup(tables[rep_true[x]].reshape(grid.shape),
+                                            np.stack([np.cos(np.arctan2(h[s, 1], h[s, 0]) + k_true[x] * grid.d_phi)
+                                                      * np.hypot(h[s, 0], h[s, 1]),
+                                                      np.sin(np.arctan2(h[s, 1], h[s, 0]) + k_true[x] * grid.d_phi)
+                                                      * np.hypot(h[s, 0], h[s, 1]), h[s, 2]], -1))
+                        * denom[s] for x, s in enumerate(np.split(np.arange(h.shape[0]), n_points))])
+    offsets = np.arange(n_points + 1) * per
+    candidates = np.array([[0, 1, -1], [0, 1, 2], [0, 2, 1]], np.int64)
+    err, rep, k = best_turns(offsets, t, p, denom, r, u, candidates, tables, grid.n_theta, grid.n_phi, 4)
+    assert rep.tolist() == rep_true and k.tolist() == k_true
+    np.testing.assert_allclose(err, 0.0, atol=1e-9 * np.sum(u * r * r))
+    # no candidate or no sample: no choice
+    err, rep, k = best_turns(np.array([0, 0, per]), t[:per], p[:per], denom[:per], r[:per], u[:per],
+                             np.array([[0, 1], [-1, -1]], np.int64), tables, grid.n_theta, grid.n_phi, 2)
+    assert rep.tolist() == [-1, -1] and np.isinf(err).all()

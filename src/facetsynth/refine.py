@@ -16,13 +16,25 @@ I = rho (n.i) L / r^2 (eq. 8), the quantity the self-check and the held-out
 views score. A small ridge towards the pipeline's values keeps points whose
 samples do not constrain ks (no highlight in view) where the pipeline put
 them; kd, ks >= 0 (the constrained solution on the boundary otherwise).
+
+Before that, the NDF's one systematic loss is corrected per material: the
+completed lobes come out broader than the measurement (the demo's copper: a
+26 % larger half-maximum solid angle than the truth, peak 16 % low; every
+resampling on the way blurs). :func:`stretch` narrows (s < 1) or widens a
+tabulated NDF in slope space, where a microfacet lobe's roughness scales
+(Beckmann, GGX); s is chosen by the samples, as eta is (docs/decisions.md,
+"The fit reproduces what it saw"). Then each point's NDF turn is searched
+(:func:`best_turns`): clusters that shared one frame drew wedges.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
+
+from .grid import bilinear_at
 
 
 @dataclass(frozen=True)
@@ -90,3 +102,77 @@ def radiance_weights(wi: np.ndarray, r2: np.ndarray, intensity: np.ndarray) -> n
     squares on the radiance I = rho (n.i) L / r^2 of eq. 8."""
     e = np.clip(wi[..., 2], 0.0, None) / r2
     return (e[..., None] * intensity) ** 2
+
+
+def stretch(table: np.ndarray, grid, s: float) -> np.ndarray:
+    """The NDF tables (..., T, F) on ``grid`` stretched in slope space by ``s`` (Heitz 2014, sec. 5: the
+    slope distribution P(m) = D(h) cos^4(theta_h), m = tan(theta_h) (cos phi, sin phi), scaled to
+    P(m / s) / s^2): D_s(theta, phi) = D(theta', phi) cos^4(theta') / cos^4(theta), tan(theta') =
+    tan(theta) / s, bilinear on the grid. GGX and Beckmann of roughness alpha become exactly those of
+    s alpha (up to the normalisation, left to the caller: :func:`facetsynth.params.normalise`); s = 1
+    returns the tables."""
+    if s == 1.0:
+        return np.asarray(table, float)
+    d = grid.directions
+    theta = np.arctan2(np.hypot(d[..., 0], d[..., 1]), d[..., 2])
+    source = np.arctan(np.tan(theta) / s)
+    phi = np.arctan2(d[..., 1], d[..., 0])
+    src = np.stack([np.sin(source) * np.cos(phi), np.sin(source) * np.sin(phi), np.cos(source)], -1)
+    jacobian = (np.cos(source) / np.cos(theta)) ** 4
+    return grid.lookup(np.asarray(table, float), src.reshape(-1, 3)).reshape(np.shape(table)) * jacobian
+
+
+def parabola_minimum(x: np.ndarray, y: np.ndarray) -> float:
+    """The minimum of the parabola through the smallest of ``y`` (at x, ascending) and its two neighbours,
+    clipped to their interval; the smallest x's own value at either end of the ladder."""
+    k = int(np.argmin(y))
+    if k == 0 or k == len(x) - 1:
+        return float(x[k])
+    (x0, x1, x2), (y0, y1, y2) = x[k - 1:k + 2], y[k - 1:k + 2]
+    den = (x1 - x0) * (y1 - y2) - (x1 - x2) * (y1 - y0)
+    if den >= 0:                       # not convex (y1 is the smallest: only a degenerate parabola)
+        return float(x1)
+    top = (x1 - x0) ** 2 * (y1 - y2) - (x1 - x2) ** 2 * (y1 - y0)
+    return float(np.clip(x1 - 0.5 * top / den, x0, x2))
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def best_turns(offsets, t, p, denom, r, u, candidates, tables, n_theta, n_phi, window):
+    """For each point the representative and whole-sector turn whose NDF best explains its specular samples.
+
+    Point x owns samples offsets[x]:offsets[x + 1] (luminance): ``r`` the specular residual, ``u`` its weight,
+    (``t``, ``p``) the half vector's continuous cell coordinates in the point's current frame
+    (:meth:`DirectionGrid.coordinates` after the point's turn), ``denom`` F / (4 A(i) A(o)) of the current
+    model. A candidate is a representative of ``candidates`` (N, K) (-1: none) turned by k sectors, |k| <=
+    ``window``: g = D_rep(t, p + k) denom, i.e. the turn grows by k d_phi (eq. 13's R(phi) adds phi to the
+    azimuth). Its error after the best ks >= 0 is sum u r^2 - max(0, sum u g r)^2 / sum u g^2 (eq. 6 with kd
+    fixed: the lobe's samples decide the shape). Returns (error (N,), representative (N,), k (N,)); a point
+    without samples or candidates gets (inf, -1, 0).
+    """
+    n = offsets.size - 1
+    best = np.full(n, np.inf)
+    rep_out = np.full(n, -1, np.int64)
+    k_out = np.zeros(n, np.int64)
+    for x in numba.prange(n):
+        s0, s1 = offsets[x], offsets[x + 1]
+        if s1 <= s0:
+            continue
+        urr = 0.0
+        for s in range(s0, s1):
+            urr += u[s] * r[s] * r[s]
+        for j in range(candidates.shape[1]):
+            rep = candidates[x, j]
+            if rep < 0:
+                continue
+            table = tables[rep]
+            for k in range(-window, window + 1):
+                ugr = 0.0
+                ugg = 0.0
+                for s in range(s0, s1):
+                    g = bilinear_at(table, t[s], p[s] + k, n_theta, n_phi) * denom[s]
+                    ugr += u[s] * g * r[s]
+                    ugg += u[s] * g * g
+                err = urr - ugr * ugr / ugg if (ugg > 0.0 and ugr > 0.0) else urr
+                if err < best[x]:
+                    best[x], rep_out[x], k_out[x] = err, rep, k
+    return best, rep_out, k_out

@@ -47,6 +47,7 @@ rule refine:
         metrics="results/{sample}/refine/metrics.json",
     params:
         **config["refine"],
+        material_tolerance=config["params"]["material_tolerance"],   # materials as params groups them
     log:
         "results/{sample}/logs/refine.log",
     benchmark:

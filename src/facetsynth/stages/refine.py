@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -21,32 +21,152 @@ import numpy as np
 from ..fileio import atomic_dir, read_npy, write_json
 from ..frames import map_frames
 from ..metrics import finite_or_none
-from ..microfacet import fresnel
-from ..refine import NormalSums, radiance_weights, solve
+from ..grid import turn
+from ..microfacet import fresnel, half_vector
+from ..cluster import material_groups
+from ..params import normalise, projected_area
+from ..refine import NormalSums, best_turns, parabola_minimum, radiance_weights, solve, stretch
 from ..render import light_geometry, unit
 from ..svbrdf import SVBRDF
-from .common import RectifiedCapture, StageSettings, tiles
+from .common import TILE_POINTS, RectifiedCapture, StageSettings, tiles
 
 log = logging.getLogger(__name__)
+
+
+FIGURE_POINTS = 4096   # points (evenly strided) the fit's own figures are measured on
 
 
 @dataclass(frozen=True)
 class Settings(StageSettings):
     """The stage's knobs: config ``refine`` (workflow/schemas/config.schema.yaml)."""
-    ridge: float = 1e-3    # weight of the pipeline's kd, ks as a prior, relative to the point's samples
+    ridge: float = 1e-3               # weight of the pipeline's kd, ks as a prior, relative to the point's samples
+    eta: tuple = (1.2, 1.4, 1.7, 2.1, 2.7, 3.5, 5.0, 8.0)   # the etas tried per material (): none
+    stretch: tuple = (0.6, 0.7, 0.8, 0.9, 1.0, 1.1)   # the NDF stretches tried per material (): none
+    material_points: int = 300        # points (evenly strided) of a material that choose its eta and stretch
+    material_margin: float = 0.005    # a choice replaces the pipeline's where it lowers their error by this share
+    material_tolerance: float = 0.25  # config params.material_tolerance: representatives' kd within it: one material
+    turn_window_deg: float = 22.5     # each point's NDF: its best representative turned within this either way (0: off)
+    turn_margin: float = 0.01         # ... taken where it lowers the point's specular error by more than this share
 
 
-def fit(model: SVBRDF, capture: RectifiedCapture, specular, valid, settings: Settings = Settings(),
-        threads: int = 1) -> tuple[SVBRDF, dict]:
-    """kd and ks per point by :func:`facetsynth.refine.solve` on the point's valid samples lit from above;
-    returns the refined model (NDFs, turns, eta unchanged) and the fit's figures."""
+def point_sums(model: SVBRDF, capture: RectifiedCapture, specular, valid, index: np.ndarray) -> NormalSums:
+    """The normal sums of :func:`facetsynth.refine.solve` at points ``index`` (sorted) from their valid samples
+    lit from above (i.z > 0), rho = separate's residual + kd/pi, weighted in radiance; a tile of points at a
+    time (TILE_POINTS: the (points, frames, 3) temporaries stay small)."""
+    if index.size > TILE_POINTS:
+        parts = [point_sums(model, capture, specular, valid, index[t]) for t in tiles(index.size)]
+        return NormalSums(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(NormalSums)))
+    points = capture.points[index]
+    wi, r2 = light_geometry(points[:, None, :], capture.light_positions[None])
+    rho_s = np.asarray(specular[index], np.float32)
+    ok = np.asarray(valid[index], bool) & (wi[..., 2] > 0) & capture.visible[index][:, None]
+    ok &= np.isfinite(rho_s).all(axis=-1)
+    pp, ff = np.nonzero(ok)
+    at = index[pp]
+    views = unit(capture.view_position - points)
+    area_o = model.area_at(index, views)
+    spec, c = model.specular_terms(at, wi[pp, ff], views[pp], area_o[pp])
+    g = spec * fresnel(c, model.eta[at])
+    y = rho_s[pp, ff].astype(float) + model.kd[at] / np.pi
+    u = radiance_weights(wi[pp, ff], r2[pp, ff], capture.light_intensities[ff])
+    return NormalSums.of(pp, len(index), y, g, u)
+
+
+def stretched(model: SVBRDF, s: np.ndarray) -> SVBRDF:
+    """``model`` with each representative's NDF stretched by its s (R,) (:func:`facetsynth.refine.stretch`),
+    renormalised, and eq. 5's A(k) made anew from it (the others' tables as they were)."""
+    ndf, area = model.ndf.copy(), model.area.copy()
+    change = np.flatnonzero(np.asarray(s) != 1.0)
+    if change.size:
+        normalised, _ = normalise(np.stack([stretch(model.ndf[k], model.grid, float(s[k])) for k in change]),
+                                  model.grid)
+        ndf[change] = normalised
+        area[change] = projected_area(normalised, model.grid, model.shadowing_grid)
+    return replace(model, ndf=ndf, area=area)
+
+
+def choose_per_material(model: SVBRDF, capture: RectifiedCapture, specular, valid, settings: Settings, what: str,
+                        ladder, apply) -> tuple[SVBRDF, list[dict]]:
+    """One parameter per material (representatives grouped by kd, :func:`facetsynth.cluster.material_groups`,
+    a point belonging to its largest eq. 18 weight's), chosen by the samples: each value of ``ladder`` is
+    tried on up to ``settings.material_points`` of the material's points (evenly strided), scored by the
+    squared radiance error left by their kd, ks fit, and the parabola through the best and its neighbours
+    taken (in log: the ladders are ratios); it replaces the pipeline's value where it lowers that error by
+    more than ``settings.material_margin`` (elsewhere the samples do not tell the values apart, and the
+    pipeline's stays). ``apply(model, representatives, points, value)`` is the model with the value set.
+    Returns the model with every material's choice and a record per material."""
+    reps = (np.arange(model.ndf.shape[0]) if model.representatives is None
+            else np.asarray(model.representatives, np.intp))
+    material = material_groups(model.kd[reps], settings.material_tolerance)
+    owner = model.neighbours[np.arange(model.n_points), np.argmax(model.weights, axis=1)]
+    ladder = np.asarray(sorted(ladder), float)
+    records = []
+    for m in np.unique(material) if ladder.size else []:
+        members = np.flatnonzero(material == m)
+        points = np.flatnonzero(capture.visible & np.isin(owner, members))
+        index = points[::max(1, -(-points.size // settings.material_points))]
+        if index.size == 0:
+            continue
+
+        def error(trial: SVBRDF) -> float:
+            sums = point_sums(trial, capture, specular, valid, index)
+            a, b = solve(sums, trial.kd[index] / np.pi, trial.ks[index], settings.ridge)
+            return float(sums.sse(a, b).sum())
+
+        current = error(model)
+        sse = np.array([error(apply(model, members, points, v)) for v in ladder])
+        best = float(np.exp(parabola_minimum(np.log(ladder), sse)))
+        chosen = apply(model, members, points, best)
+        best_sse = error(chosen)
+        taken = best_sse < (1.0 - settings.material_margin) * current
+        if taken:
+            model = chosen
+        records.append({"material": int(m), "representatives": members.tolist(), "points": int(index.size),
+                        what: best, "taken": bool(taken), "ladder": ladder.tolist(),
+                        "sse_relative": (sse / max(current, 1e-300)).round(4).tolist(),
+                        "sse_relative_chosen": round(best_sse / max(current, 1e-300), 4)})
+        log.info("material %d (%d representatives): %s %.3f %s (squared error on %d points, relative to the "
+                 "pipeline's: %s over %s; chosen %.4f)", m, members.size, what, best,
+                 "taken" if taken else "NOT taken (no better than the pipeline's)", index.size,
+                 records[-1]["sse_relative"], ladder.tolist(), records[-1]["sse_relative_chosen"])
+    return model, records
+
+
+def with_eta(model: SVBRDF, representatives: np.ndarray, points: np.ndarray, eta: float) -> SVBRDF:
+    """``model`` with eta = ``eta`` at ``points`` (one material's)."""
+    out = model.eta.copy()
+    out[points] = eta
+    fitted = np.zeros(model.n_points, bool) if model.eta_fitted is None else model.eta_fitted.copy()
+    fitted[points] = True           # the samples constrained it
+    return replace(model, eta=out, eta_fitted=fitted)
+
+
+def with_stretch(model: SVBRDF, representatives: np.ndarray, points: np.ndarray, s: float) -> SVBRDF:
+    """``model`` with the NDFs of ``representatives`` stretched by s (:func:`stretched`)."""
+    factors = np.ones(model.ndf.shape[0])
+    factors[representatives] = s
+    return stretched(model, factors)
+
+
+def choose_turns(model: SVBRDF, capture: RectifiedCapture, specular, valid, settings: Settings,
+                 threads: int = 1) -> tuple[SVBRDF, dict]:
+    """Each point's NDF as the one representative, turned by whole sectors within ``turn_window_deg``, that
+    best explains its specular samples (:func:`facetsynth.refine.best_turns`; candidates: the
+    representatives of its eq. 18 mixture), where that lowers its error by more than ``turn_margin`` against
+    the pipeline's mixture and turn; elsewhere (an isotropic lobe: every turn fits alike) the pipeline's NDF
+    stays. A cluster's points shared one frame unless the cluster turned as a whole: at its borders the
+    lobe's axis stepped (the demo's wedges, the Mitsuba copper's blocks, issue 29)."""
+    window = int(round(np.radians(settings.turn_window_deg) / model.grid.d_phi))
+    if window <= 0:
+        return model, {"turned_points": 0}
     n = capture.n_points
-    a0, b0 = model.kd / np.pi, model.ks
-    a, b = a0.copy(), b0.copy()
-    before, after, signal = np.zeros(n), np.zeros(n), np.zeros(n)
+    rotation = np.zeros(n) if model.rotation is None else model.rotation.astype(float)
+    neighbours, weights = model.neighbours.copy(), model.weights.astype(float).copy()
+    gain = np.zeros(n)
+    tables = model._ndf_flat
     views = unit(capture.view_position - capture.points)
 
-    def tile_fit(tile: slice) -> None:
+    def tile_turns(tile: slice) -> None:
         index = np.arange(tile.start, tile.stop)
         wi, r2 = light_geometry(capture.points[tile][:, None, :], capture.light_positions[None])
         rho_s = np.asarray(specular[tile], np.float32)
@@ -55,27 +175,85 @@ def fit(model: SVBRDF, capture: RectifiedCapture, specular, valid, settings: Set
         pp, ff = np.nonzero(ok)
         if pp.size == 0:
             return
-        at = index[pp]
+        at, i, o = index[pp], wi[pp, ff], views[index[pp]]
+        h = half_vector(i, o)
+        c = 0.5 * (np.abs(np.sum(i * h, -1)) + np.abs(np.sum(o * h, -1)))
         area_o = model.area_at(index, views[tile])
-        spec, c = model.specular_terms(at, wi[pp, ff], views[at], area_o[pp])
-        g = spec * fresnel(c, model.eta[at])
-        y = rho_s[pp, ff].astype(float) + a0[at]
-        u = radiance_weights(wi[pp, ff], r2[pp, ff], capture.light_intensities[ff])
-        sums = NormalSums.of(pp, len(index), y, g, u)
-        a[tile], b[tile] = solve(sums, a0[tile], b0[tile], settings.ridge)
-        before[tile] = sums.sse(a0[tile], b0[tile]).sum(axis=1)
-        after[tile] = sums.sse(a[tile], b[tile]).sum(axis=1)
-        signal[tile] = sums.uyy.sum(axis=1)
+        denom = fresnel(c, model.eta[at]) / (4.0 * model.area_at(at, i) * area_o[pp])
+        r = rho_s[pp, ff].mean(axis=-1).astype(float)
+        u = radiance_weights(i, r2[pp, ff], capture.light_intensities[ff]).mean(axis=-1)
+        g0 = model.ndf_at(at, h) * denom
+        ugr, ugg = (np.bincount(pp, v, minlength=index.size) for v in (u * g0 * r, u * g0 * g0))
+        urr = np.bincount(pp, u * r * r, minlength=index.size)
+        current = urr - np.divide(np.clip(ugr, 0, None) ** 2, ugg, out=np.zeros_like(ugg), where=ugg > 0)
+        t, p = model.grid.coordinates(turn(h, rotation[at]))
+        offsets = np.searchsorted(pp, np.arange(index.size + 1))
+        candidates = np.where(model.weights[index] != 0, model.neighbours[index], -1).astype(np.int64)
+        err, rep, k = best_turns(offsets, t, p, denom, r, u, candidates, tables, model.grid.n_theta,
+                                 model.grid.n_phi, window)
+        better = (rep >= 0) & (err < (1.0 - settings.turn_margin) * current)
+        rows = index[better]
+        neighbours[rows] = 0
+        neighbours[rows, 0] = rep[better]
+        weights[rows] = 0.0
+        weights[rows, 0] = 1.0
+        rotation[rows] += k[better] * model.grid.d_phi
+        gain[rows] = err[better] / np.maximum(current[better], 1e-300)
 
+    map_frames(tile_turns, list(tiles(n)), threads, "refine: each point's NDF turn", unit="tile")
+    turned = gain > 0
+    record = {"turned_points": int(turned.sum()), "turned_fraction": float(turned[capture.visible].mean())
+              if capture.visible.any() else 0.0, "window_sectors": window,
+              "specular_error_ratio_median": finite_or_none(np.median(gain[turned])) if turned.any() else None}
+    log.info("NDF turns: %d points (%.0f %% of the visible) take a representative turned within +-%d sectors; "
+             "their specular error falls to %s of the pipeline's (median)", record["turned_points"],
+             100 * record["turned_fraction"], window, record["specular_error_ratio_median"])
+    return replace(model, neighbours=neighbours, weights=weights, rotation=rotation), record
+
+
+def fit(model: SVBRDF, capture: RectifiedCapture, specular, valid, settings: Settings = Settings(),
+        threads: int = 1) -> tuple[SVBRDF, dict]:
+    """eta and the NDF stretch per material (:func:`choose_per_material`), each point's NDF turn
+    (:func:`choose_turns`), then kd and ks per point by
+    :func:`facetsynth.refine.solve` on the point's valid samples; returns the refined model (NDF mixtures,
+    turns, eta otherwise unchanged) and the fit's figures."""
     t0 = time.perf_counter()
+    n = capture.n_points
+    start = model
+    model, etas = choose_per_material(model, capture, specular, valid, settings, "eta", settings.eta, with_eta)
+    model, stretches = choose_per_material(model, capture, specular, valid, settings, "stretch", settings.stretch,
+                                           with_stretch)
+    model, turns = choose_turns(model, capture, specular, valid, settings, threads)
+    a0, b0 = model.kd / np.pi, model.ks
+    a, b = a0.copy(), b0.copy()
+    fitted = np.zeros(n, bool)
+
+    def tile_fit(tile: slice) -> None:
+        sums = point_sums(model, capture, specular, valid, np.arange(tile.start, tile.stop))
+        a[tile], b[tile] = solve(sums, a0[tile], b0[tile], settings.ridge)
+        fitted[tile] = sums.u.sum(axis=1) > 0
+
     map_frames(tile_fit, list(tiles(n)), threads, "refine: kd, ks per point", unit="tile")
     refined = replace(model, kd=np.pi * a, ks=b)
-    total = signal.sum()
-    figures = {"fitting_samples_rel_l2_before": finite_or_none(np.sqrt(before.sum() / total)) if total else None,
-               "fitting_samples_rel_l2_after": finite_or_none(np.sqrt(after.sum() / total)) if total else None,
-               "points_fitted": int((signal > 0).sum()), "ridge": settings.ridge,
-               "seconds": round(time.perf_counter() - t0, 2)}
+    figures = {**{f"fitting_samples_rel_l2_{when}": samples_rel_l2(m, capture, specular, valid)
+                  for when, m in (("before", start), ("after", refined))},
+               "fitting_samples_points": FIGURE_POINTS, "points_fitted": int(fitted.sum()), "ridge": settings.ridge,
+               "eta": etas, "stretch": stretches, "turns": turns, "seconds": round(time.perf_counter() - t0, 2)}
     return refined, figures
+
+
+def samples_rel_l2(model: SVBRDF, capture: RectifiedCapture, specular, valid) -> float | None:
+    """sqrt(sum u (rho - model)^2 / sum u rho^2) over the valid samples of up to FIGURE_POINTS visible points
+    (evenly strided): the model against the samples it was fitted on, in radiance (u of
+    :func:`facetsynth.refine.radiance_weights`), on the rectified grid."""
+    index = np.flatnonzero(capture.visible)
+    index = index[::max(1, -(-index.size // FIGURE_POINTS))]
+    if index.size == 0:
+        return None
+    sums = point_sums(model, capture, specular, valid, index)
+    total = float(sums.uyy.sum())
+    err = float(sums.sse(model.kd[index] / np.pi, model.ks[index]).sum())
+    return finite_or_none(np.sqrt(err / total)) if total > 0 else None
 
 
 def truth_scores(model: SVBRDF, capture: RectifiedCapture) -> dict:
@@ -113,9 +291,9 @@ def run(model: str | Path, geometry: str | Path, specular: str | Path, valid: st
         refined.info = dict(pipeline.info, ks="ks, kd per point: eq. 6 fitted to the point's samples with the "
                                               "pipeline's NDF, turn and eta (facetsynth.refine)")
         refined.save(staging, provenance=dict(pipeline.info.get("provenance", {}), refine=str(model)))
-    log.info("relative L2 on the fitting samples (radiance, rectified): %s -> %s (%d points, %.1f s)",
-             metrics["fitting_samples_rel_l2_before"], metrics["fitting_samples_rel_l2_after"],
-             metrics["points_fitted"], metrics["seconds"])
+    log.info("relative L2 on the fitting samples (radiance, rectified, %d points): %s -> %s (%d points fitted, "
+             "%.1f s)", FIGURE_POINTS, metrics["fitting_samples_rel_l2_before"],
+             metrics["fitting_samples_rel_l2_after"], metrics["points_fitted"], metrics["seconds"])
     truth = truth_scores(refined, capture)
     if truth:
         before = truth_scores(pipeline, capture)
