@@ -23,7 +23,8 @@ from ..frames import map_frames
 from ..metrics import finite_or_none
 from ..grid import turn
 from ..microfacet import fresnel, half_vector
-from ..cluster import material_groups
+from ..cluster import material_groups, relative_rotation
+from ..synthesis import pairwise_distance, rotate_tuple
 from ..params import normalise, projected_area
 from ..refine import NormalSums, best_turns, parabola_minimum, radiance_weights, solve, stretch
 from ..render import light_geometry, unit
@@ -45,6 +46,7 @@ class Settings(StageSettings):
     material_points: int = 300        # points (evenly strided) of a material that choose its eta and stretch
     material_margin: float = 0.005    # a choice replaces the pipeline's where it lowers their error by this share
     material_tolerance: float = 0.25  # config params.material_tolerance: representatives' kd within it: one material
+    share_distance: float = 0.05      # a material's representatives within this of its main one turned: that one
     turn_window_deg: float = 22.5     # each point's NDF: its best representative turned within this either way (0: off)
     turn_margin: float = 0.01         # ... taken where it lowers the point's specular error by more than this share
 
@@ -85,6 +87,82 @@ def stretched(model: SVBRDF, s: np.ndarray) -> SVBRDF:
     return replace(model, ndf=ndf, area=area)
 
 
+def share_representatives(model: SVBRDF, capture: RectifiedCapture, specular, valid,
+                          settings: Settings) -> tuple[SVBRDF, list]:
+    """One NDF per material, turned point by point: every representative of a material (grouped by kd) whose
+    completed NDF is the material's main one (the representative of most points) turned, within
+    ``settings.share_distance`` (eq. 15's relative distance after the best turn,
+    :func:`facetsynth.cluster.relative_rotation` over a half turn), hands its points to it with that turn
+    added to theirs. Synthesis completes each representative on its own, each normalisation carries its
+    own error, and ks made up for it cluster by cluster: steps in ks at every cluster border of one
+    material (the demo's copper: nine representatives, one NDF turned; issue 29). An isotropic main
+    NDF (turning it a quarter changes it by less than ``share_distance``) passes on no turn. The sharing is
+    taken where the samples do not disagree: on up to ``material_points`` of the material's points, each
+    turned as :func:`choose_turns` would, its squared error (:func:`fitted_error`) at most
+    ``material_margin`` above the pipeline's mixtures' (one NDF is the simpler model: a tie goes to it)."""
+    reps = (np.arange(model.ndf.shape[0]) if model.representatives is None
+            else np.asarray(model.representatives, np.intp))
+    material = material_groups(model.kd[reps], settings.material_tolerance)
+    owner = model.neighbours[np.arange(model.n_points), np.argmax(model.weights, axis=1)]
+    grid, d = model.grid, model.ndf.astype(float)
+    full = np.ones(grid.shape)
+    neighbours, weights = model.neighbours.copy(), model.weights.astype(float).copy()
+    rotation = np.zeros(model.n_points) if model.rotation is None else model.rotation.astype(float)
+    records = []
+
+    def distance(j: int, main: int, sectors: float) -> float:
+        turned, conf = rotate_tuple(d[main], full, grid, sectors)
+        return float(pairwise_distance(d[j:j + 1], full[None], turned[None], conf[None], grid)[0, 0])
+
+    for m in np.unique(material):
+        members = np.flatnonzero(material == m)
+        if members.size < 2:
+            continue
+        main = members[np.argmax(np.bincount(owner[capture.visible], minlength=len(d))[members])]
+        isotropic = distance(main, main, grid.n_phi / 4) < settings.share_distance
+        phi, _ = relative_rotation(d[members], np.ones_like(d[members]), d[main], full, grid,
+                                   max_shift=grid.n_phi // 4)
+        shared = []
+        trial_nb, trial_w, trial_rot = neighbours.copy(), weights.copy(), rotation.copy()
+        for j, turn_j in zip(members, phi):
+            gap = distance(j, main, turn_j / grid.d_phi)
+            if j == main or gap >= settings.share_distance:
+                continue
+            points = np.flatnonzero(owner == j)
+            trial_nb[points], trial_w[points] = main, 0.0
+            trial_w[points, 0] = 1.0
+            trial_rot[points] += 0.0 if isotropic else turn_j
+            shared.append({"representative": int(j), "turn_deg": round(float(np.degrees(turn_j)), 2),
+                           "distance": round(gap, 5), "points": int(points.size)})
+        if not shared:
+            continue
+        # taken where the samples agree: both turned point by point on the material's sample of points
+        index = np.flatnonzero(capture.visible & np.isin(owner, members))
+        index = index[::max(1, -(-index.size // settings.material_points))]
+        trial = replace(model, neighbours=trial_nb, weights=trial_w, rotation=trial_rot)
+        errors = [fitted_error(choose_turns(candidate, capture, specular, valid, settings, points=index)[0],
+                               capture, specular, valid, index, settings.ridge) for candidate in (model, trial)]
+        taken = errors[1] <= (1.0 + settings.material_margin) * errors[0]
+        if taken:
+            neighbours, weights, rotation = trial_nb, trial_w, trial_rot
+        records.append({"material": int(m), "main": int(main), "isotropic": bool(isotropic), "shared": shared,
+                        "taken": bool(taken), "sse_relative": round(errors[1] / max(errors[0], 1e-300), 4)})
+        log.info("material %d: %d of its %d other representatives are its main one (%d)%s turned: %s; squared "
+                 "error after the turn search %.4f of the pipeline's: %s", m, len(shared), members.size - 1, main,
+                 " (isotropic: not)" if isotropic else "", [(r["representative"], r["turn_deg"], r["distance"])
+                                                            for r in shared],
+                 records[-1]["sse_relative"], "taken" if taken else "NOT taken")
+    return replace(model, neighbours=neighbours, weights=weights, rotation=rotation), records
+
+
+def fitted_error(model: SVBRDF, capture: RectifiedCapture, specular, valid, index: np.ndarray,
+                 ridge: float) -> float:
+    """The squared radiance error left at ``index`` by the points' kd, ks fit (:func:`facetsynth.refine.solve`)."""
+    sums = point_sums(model, capture, specular, valid, index)
+    a, b = solve(sums, model.kd[index] / np.pi, model.ks[index], ridge)
+    return float(sums.sse(a, b).sum())
+
+
 def choose_per_material(model: SVBRDF, capture: RectifiedCapture, specular, valid, settings: Settings, what: str,
                         ladder, apply) -> tuple[SVBRDF, list[dict]]:
     """One parameter per material (representatives grouped by kd, :func:`facetsynth.cluster.material_groups`,
@@ -109,9 +187,7 @@ def choose_per_material(model: SVBRDF, capture: RectifiedCapture, specular, vali
             continue
 
         def error(trial: SVBRDF) -> float:
-            sums = point_sums(trial, capture, specular, valid, index)
-            a, b = solve(sums, trial.kd[index] / np.pi, trial.ks[index], settings.ridge)
-            return float(sums.sse(a, b).sum())
+            return fitted_error(trial, capture, specular, valid, index, settings.ridge)
 
         current = error(model)
         sse = np.array([error(apply(model, members, points, v)) for v in ladder])
@@ -149,13 +225,14 @@ def with_stretch(model: SVBRDF, representatives: np.ndarray, points: np.ndarray,
 
 
 def choose_turns(model: SVBRDF, capture: RectifiedCapture, specular, valid, settings: Settings,
-                 threads: int = 1) -> tuple[SVBRDF, dict]:
+                 threads: int = 1, points: np.ndarray | None = None) -> tuple[SVBRDF, dict]:
     """Each point's NDF as the one representative, turned by whole sectors within ``turn_window_deg``, that
     best explains its specular samples (:func:`facetsynth.refine.best_turns`; candidates: the
     representatives of its eq. 18 mixture), where that lowers its error by more than ``turn_margin`` against
     the pipeline's mixture and turn; elsewhere (an isotropic lobe: every turn fits alike) the pipeline's NDF
     stays. A cluster's points shared one frame unless the cluster turned as a whole: at its borders the
-    lobe's axis stepped (the demo's wedges, the Mitsuba copper's blocks, issue 29)."""
+    lobe's axis stepped (the demo's wedges, the Mitsuba copper's blocks, issue 29). ``points``: only these
+    (sorted; default all)."""
     window = int(round(np.radians(settings.turn_window_deg) / model.grid.d_phi))
     if window <= 0:
         return model, {"turned_points": 0}
@@ -166,11 +243,10 @@ def choose_turns(model: SVBRDF, capture: RectifiedCapture, specular, valid, sett
     tables = model._ndf_flat
     views = unit(capture.view_position - capture.points)
 
-    def tile_turns(tile: slice) -> None:
-        index = np.arange(tile.start, tile.stop)
-        wi, r2 = light_geometry(capture.points[tile][:, None, :], capture.light_positions[None])
-        rho_s = np.asarray(specular[tile], np.float32)
-        ok = np.asarray(valid[tile], bool) & (wi[..., 2] > 0) & capture.visible[tile][:, None]
+    def tile_turns(index: np.ndarray) -> None:
+        wi, r2 = light_geometry(capture.points[index][:, None, :], capture.light_positions[None])
+        rho_s = np.asarray(specular[index], np.float32)
+        ok = np.asarray(valid[index], bool) & (wi[..., 2] > 0) & capture.visible[index][:, None]
         ok &= np.isfinite(rho_s).all(axis=-1)
         pp, ff = np.nonzero(ok)
         if pp.size == 0:
@@ -178,7 +254,7 @@ def choose_turns(model: SVBRDF, capture: RectifiedCapture, specular, valid, sett
         at, i, o = index[pp], wi[pp, ff], views[index[pp]]
         h = half_vector(i, o)
         c = 0.5 * (np.abs(np.sum(i * h, -1)) + np.abs(np.sum(o * h, -1)))
-        area_o = model.area_at(index, views[tile])
+        area_o = model.area_at(index, views[index])
         denom = fresnel(c, model.eta[at]) / (4.0 * model.area_at(at, i) * area_o[pp])
         r = rho_s[pp, ff].mean(axis=-1).astype(float)
         u = radiance_weights(i, r2[pp, ff], capture.light_intensities[ff]).mean(axis=-1)
@@ -200,7 +276,9 @@ def choose_turns(model: SVBRDF, capture: RectifiedCapture, specular, valid, sett
         rotation[rows] += k[better] * model.grid.d_phi
         gain[rows] = err[better] / np.maximum(current[better], 1e-300)
 
-    map_frames(tile_turns, list(tiles(n)), threads, "refine: each point's NDF turn", unit="tile")
+    points = np.arange(n) if points is None else np.asarray(points, np.intp)
+    map_frames(tile_turns, [points[t] for t in tiles(points.size)], threads, "refine: each point's NDF turn",
+               unit="tile")
     turned = gain > 0
     record = {"turned_points": int(turned.sum()), "turned_fraction": float(turned[capture.visible].mean())
               if capture.visible.any() else 0.0, "window_sectors": window,
@@ -213,13 +291,15 @@ def choose_turns(model: SVBRDF, capture: RectifiedCapture, specular, valid, sett
 
 def fit(model: SVBRDF, capture: RectifiedCapture, specular, valid, settings: Settings = Settings(),
         threads: int = 1) -> tuple[SVBRDF, dict]:
-    """eta and the NDF stretch per material (:func:`choose_per_material`), each point's NDF turn
+    """One NDF per material (:func:`share_representatives`), eta and the NDF stretch per material
+    (:func:`choose_per_material`), each point's NDF turn
     (:func:`choose_turns`), then kd and ks per point by
     :func:`facetsynth.refine.solve` on the point's valid samples; returns the refined model (NDF mixtures,
     turns, eta otherwise unchanged) and the fit's figures."""
     t0 = time.perf_counter()
     n = capture.n_points
     start = model
+    model, shared = share_representatives(model, capture, specular, valid, settings)
     model, etas = choose_per_material(model, capture, specular, valid, settings, "eta", settings.eta, with_eta)
     model, stretches = choose_per_material(model, capture, specular, valid, settings, "stretch", settings.stretch,
                                            with_stretch)
@@ -238,7 +318,7 @@ def fit(model: SVBRDF, capture: RectifiedCapture, specular, valid, settings: Set
     figures = {**{f"fitting_samples_rel_l2_{when}": samples_rel_l2(m, capture, specular, valid)
                   for when, m in (("before", start), ("after", refined))},
                "fitting_samples_points": FIGURE_POINTS, "points_fitted": int(fitted.sum()), "ridge": settings.ridge,
-               "eta": etas, "stretch": stretches, "turns": turns, "seconds": round(time.perf_counter() - t0, 2)}
+               "shared": shared, "eta": etas, "stretch": stretches, "turns": turns, "seconds": round(time.perf_counter() - t0, 2)}
     return refined, figures
 
 
