@@ -178,7 +178,8 @@ def test_scale_rows_join_scatter_parts_and_total_rectify_to_params(tmp_path):
     k = bench.FIT_STAGES.index("partial_ndf")
     assert rows["partial_ndf"]["wall_s"] == 40.0 + 1.0 + k and rows["partial_ndf"]["cpu_s"] == 29 + 39 + 0.5 + k
     assert rows["partial_ndf"]["max_rss_mb"] == 2000.0
-    assert rows["params"]["bytes_written"] == 10 * (bench.FIT_STAGES.index("params") + 1) + 7
+    assert rows["params"]["bytes_written"] == 10 * (bench.FIT_STAGES.index("params") + 1)
+    assert rows["refine"]["bytes_written"] == 10 * (bench.FIT_STAGES.index("refine") + 1) + 7   # with svbrdf/
     fit = [bench.FIT_STAGES.index(s) for s in bench.TOTAL_STAGES]
     assert rows["total"]["wall_s"] == sum(1.0 + k for k in fit) + 40.0
     assert rows["total"]["points"] == 4096 and rows["total"]["frames"] == 480

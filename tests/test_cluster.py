@@ -85,7 +85,7 @@ def test_two_samples_through_slurm_equal_a_local_run(repo, tmp_path):
     # every rule but capture (a localrule: it drives the rig) ran as a SLURM job, once per sample; partial_ndf
     # and resample as 4 part jobs each and their joins (scatter.tiles 4), against one job each locally
     submitted = re.findall(r"has been submitted with SLURM jobid \d+ \(log: \S*/slurm_logs/rule_(\w+)/", log)
-    rules = ("hdr", "rectify", "separate", "resample", "partial_ndf", "cluster", "synthesize", "params")
+    rules = ("hdr", "rectify", "separate", "resample", "partial_ndf", "cluster", "synthesize", "params", "refine")
     assert sorted(submitted) == sorted(list(rules) * 2 + ["partial_ndf_part", "resample_part"] * 8), submitted
 
     compared, differ = 0, []

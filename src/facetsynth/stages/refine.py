@@ -1,12 +1,14 @@
-"""Stage ``refine``: every point's kd and ks fitted to its own samples (issue 29; :mod:`facetsynth.refine`).
+"""Stage ``refine``: the fitted SVBRDF made to reproduce its own samples (issue 29; :mod:`facetsynth.refine`).
 
-Inputs: the SVBRDF of ``params`` (NDF mixtures, turns, eta: kept), the
-rectified geometry and ``separate``'s samples (the specular residual, its
-validity, kd). Output: the fitted SVBRDF folder a user takes away, and
-``refine/metrics.json`` with the relative L2 of the model against the samples
-it was fitted on (in radiance, rectified: before and after) and, for a
-virtual capture, kd and ks against the truth (scored apart from the fit, on
-the written model).
+Inputs: the SVBRDF of ``params`` (the paper's pipeline: the initialisation),
+the rectified geometry and ``separate``'s samples (the specular residual, its
+validity). Every choice is made by the squared radiance error the model leaves
+on the samples it was fitted on (eq. 6 read forwards): one NDF per material,
+eta and the NDF's stretch per material, each point's NDF turn, kd and ks per
+point (:func:`fit`). Output: the fitted SVBRDF folder a user takes away, and
+``refine/metrics.json``: the model's relative L2 against those samples before
+and after, each choice, and for a virtual capture kd and ks against the truth
+(:func:`truth_scores`, apart from the fit, on the written model).
 """
 
 from __future__ import annotations
@@ -41,8 +43,8 @@ FIGURE_POINTS = 4096   # points (evenly strided) the fit's own figures are measu
 class Settings(StageSettings):
     """The stage's knobs: config ``refine`` (workflow/schemas/config.schema.yaml)."""
     ridge: float = 1e-3               # weight of the pipeline's kd, ks as a prior, relative to the point's samples
-    eta: tuple = (1.2, 1.4, 1.7, 2.1, 2.7, 3.5, 5.0, 8.0)   # the etas tried per material (): none
-    stretch: tuple = (0.6, 0.7, 0.8, 0.9, 1.0, 1.1)   # the NDF stretches tried per material (): none
+    eta: tuple = (1.2, 1.4, 1.7, 2.1, 2.7, 3.5, 5.0, 8.0)   # the etas tried per material; (): none
+    stretch: tuple = (0.6, 0.7, 0.8, 0.9, 1.0, 1.1)   # the NDF stretches tried per material; (): none
     material_points: int = 300        # points (evenly strided) of a material that choose its eta and stretch
     material_margin: float = 0.005    # a choice replaces the pipeline's where it lowers their error by this share
     material_tolerance: float = 0.25  # config params.material_tolerance: representatives' kd within it: one material
@@ -291,11 +293,10 @@ def choose_turns(model: SVBRDF, capture: RectifiedCapture, specular, valid, sett
 
 def fit(model: SVBRDF, capture: RectifiedCapture, specular, valid, settings: Settings = Settings(),
         threads: int = 1) -> tuple[SVBRDF, dict]:
-    """One NDF per material (:func:`share_representatives`), eta and the NDF stretch per material
-    (:func:`choose_per_material`), each point's NDF turn
-    (:func:`choose_turns`), then kd and ks per point by
-    :func:`facetsynth.refine.solve` on the point's valid samples; returns the refined model (NDF mixtures,
-    turns, eta otherwise unchanged) and the fit's figures."""
+    """The pipeline's model made to reproduce its samples, in this order: one NDF per material
+    (:func:`share_representatives`); eta, then the NDF's stretch, per material (:func:`choose_per_material`);
+    each point's NDF turn (:func:`choose_turns`); kd and ks per point (:func:`facetsynth.refine.solve`).
+    Returns the refined model and the fit's figures."""
     t0 = time.perf_counter()
     n = capture.n_points
     start = model
@@ -318,7 +319,8 @@ def fit(model: SVBRDF, capture: RectifiedCapture, specular, valid, settings: Set
     figures = {**{f"fitting_samples_rel_l2_{when}": samples_rel_l2(m, capture, specular, valid)
                   for when, m in (("before", start), ("after", refined))},
                "fitting_samples_points": FIGURE_POINTS, "points_fitted": int(fitted.sum()), "ridge": settings.ridge,
-               "shared": shared, "eta": etas, "stretch": stretches, "turns": turns, "seconds": round(time.perf_counter() - t0, 2)}
+               "shared": shared, "eta": etas, "stretch": stretches, "turns": turns,
+               "seconds": round(time.perf_counter() - t0, 2)}
     return refined, figures
 
 
