@@ -224,11 +224,11 @@ def test_the_fit_predicts_a_held_out_mitsuba_view(fitted):
 # --- (d) issue 29: the paper's light density at native resolution, the self-check against Mitsuba ------------
 
 PAPER_480 = Path(__file__).parents[1] / "rig" / "descriptions" / "paper-480.yaml"
-# Measured 2026-12-04 (balanced, native 168 x 168, 480 lights; before issue 29's refine stage in brackets):
-# relit fitting view 0.095 (0.240), held-out lights 0.131 (0.282), held-out view (the paper's) NATIVE_VIEW.
+# Measured 2026-12-04 (balanced, native 168 x 168, 480 lights; before issue 29 in brackets, all lights in that
+# fit): relit fitting view 0.099 (0.242), held-out lights 0.137, held-out view (the paper's) 0.110 (0.237).
 # The bounds are those plus about 15 %; the issue's targets (0.05 / 0.07 / 0.10) are not met: Mitsuba's
-# conductor Fresnel is outside eq. 6, and the copper's kd-grouped materials choose eta apart (docs/accuracy.md).
-NATIVE_RELIT, NATIVE_HELDOUT_LIGHTS, NATIVE_VIEW = 0.11, 0.15, 0.30
+# conductor Fresnel is outside eq. 6, and the copper's kd-grouped materials choose eta apart (docs/decisions.md).
+NATIVE_RELIT, NATIVE_HELDOUT_LIGHTS, NATIVE_VIEW = 0.115, 0.16, 0.13
 
 
 @pytest.fixture(scope="module")

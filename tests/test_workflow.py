@@ -12,6 +12,8 @@ import pytest
 
 from facetsynth import manifest, selfcheck, tables
 from facetsynth.fileio import read_rgb, write_exr
+from facetsynth.stages.common import RectifiedCapture
+from facetsynth.svbrdf import SVBRDF
 from facetsynth.stages import partial_ndf
 from facetsynth.tables import SupportTable
 from facetsynth.virtual_rig import VirtualRig, capture
@@ -119,6 +121,21 @@ def test_noise_free_demo_predicts_held_out_views_and_fits_stencils(demo_run):
         assert view["heldout_rel_l2"] <= 0.175
         assert view["heldout_rel_l2"] < view["baseline_ward_rel_l2"]
     assert validate["heldout_rel_l2"] <= 0.165                               # measured 0.110 (0.136)
+    # issue 29, measured with default noise 2026-12-04 (before the issue in brackets): held-out views 0.067
+    # (0.094); self-check relit 0.056 (0.095), held-out lights 0.055; noise-free is no worse
+    assert validate["heldout_rel_l2"] <= 0.077
+    check = metrics(demo_run, "demo", "selfcheck")
+    assert check["relit"]["rel_l2"] <= 0.065 and check["heldout"]["rel_l2"] <= 0.065 and not check["poor_fit"]
+    # maps as smooth as the material: the copper's ks within a few per cent everywhere (p10 / p90 of the
+    # median measured 0.968 / 1.022; before, 0.99 / 1.64: wedges of 1.5 x), and the markers black
+    model = SVBRDF.load(demo_run / "results/demo/svbrdf")
+    capture = RectifiedCapture.load(demo_run / "results/demo/rectify/geometry.json")
+    truth = capture.truth()
+    ks = model.ks.mean(axis=1)[capture.visible & (truth.region == 0)]
+    p10, p90 = np.percentile(ks, [10, 90]) / np.median(ks)
+    assert p10 >= 0.94 and p90 <= 1.06
+    marker = capture.visible & (truth.kd.mean(axis=1) < 0.01) & (truth.region < 0)
+    assert marker.any() and np.median(model.ks.mean(axis=1)[marker] + model.kd.mean(axis=1)[marker]) < 0.02
     params = metrics(demo_run, "demo", "params")
     assert "blue-paint" in params["ndf_spread"] and "turned-copper" in params["ndf_spread_skipped"]
     assert np.isfinite(params["ndf_spread_max_median"])
@@ -174,7 +191,9 @@ def foreign_capture(repo, tmp_path_factory):
     return folder
 
 
-RELIT_CARD, HELDOUT_CARD = 1.0, 1.0   # placeholders until measured
+# issue 29's self-check of the imported tiny card (30 lights, 64 x 64), measured 2026-12-04: the fitting view
+# relit 0.067, the 3 held-out lights 0.286 (30 lights are too few to predict a light between them: POOR FIT)
+RELIT_CARD, HELDOUT_CARD = 0.067, 0.286
 
 
 def test_import_enters_the_same_pipeline(repo, tmp_path, foreign_capture):
@@ -197,9 +216,8 @@ def test_import_enters_the_same_pipeline(repo, tmp_path, foreign_capture):
     assert metrics(workdir, "mine", "separate")["heldout_frames"] == 3
     check = metrics(workdir, "mine", "selfcheck")
     assert (check["relit"]["frames"], check["heldout"]["frames"]) == (4, 3)
-    # measured 2026-12-04 on the noisy tiny card: relit RELIT_CARD, held-out lights HELDOUT_CARD
     assert check["relit"]["rel_l2"] <= 1.2 * RELIT_CARD and check["heldout"]["rel_l2"] <= 1.2 * HELDOUT_CARD
-    assert check["poor_fit"] is (check["heldout"]["rel_l2"] > 0.15)
+    assert check["poor_fit"] is True                                       # and says so by number
     assert (workdir / "results/mine/selfcheck/images/heldout_worst.png").is_file()
     refine = metrics(workdir, "mine", "refine")
     assert refine["ground_truth"] is False
