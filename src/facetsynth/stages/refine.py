@@ -315,6 +315,10 @@ def fit(model: SVBRDF, capture: RectifiedCapture, specular, valid, settings: Set
         fitted[tile] = sums.u.sum(axis=1) > 0
 
     map_frames(tile_fit, list(tiles(n)), threads, "refine: kd, ks per point", unit="tile")
+    bad = ~(np.isfinite(a).all(axis=1) & np.isfinite(b).all(axis=1))   # never seen; never written either
+    if bad.any():
+        log.warning("%d point(s) with a non-finite kd or ks fit keep the pipeline's", int(bad.sum()))
+        a[bad], b[bad] = a0[bad], b0[bad]
     refined = replace(model, kd=np.pi * a, ks=b)
     figures = {**{f"fitting_samples_rel_l2_{when}": samples_rel_l2(m, capture, specular, valid)
                   for when, m in (("before", start), ("after", refined))},
@@ -370,8 +374,14 @@ def run(model: str | Path, geometry: str | Path, specular: str | Path, valid: st
             raise InputError(path, f"has {a.shape[0]} rows, the rectified grid {n} points")
     refined, metrics = fit(pipeline, capture, spec, ok, settings, threads)
     with atomic_dir(svbrdf_out) as staging:
-        refined.info = dict(pipeline.info, ks="ks, kd per point: eq. 6 fitted to the point's samples with the "
-                                              "pipeline's NDF, turn and eta (facetsynth.refine)")
+        refined.info = dict(pipeline.info, ks="ks, kd per point: eq. 6 fitted to the point's samples "
+                                              "(facetsynth.stages.refine)",
+                            refine={"eta_per_material": [{k: r[k] for k in ("material", "eta", "taken")}
+                                                         for r in metrics["eta"]],
+                                    "stretch_per_material": [{k: r[k] for k in ("material", "stretch", "taken")}
+                                                             for r in metrics["stretch"]],
+                                    "note": "eta's intervals (eta.exr eta_lo, eta_hi; eta.intervals) are params' "
+                                            "eq. 19 fit, before refine chose eta by the samples"})
         refined.save(staging, provenance=dict(pipeline.info.get("provenance", {}), refine=str(model)))
     log.info("relative L2 on the fitting samples (radiance, rectified, %d points): %s -> %s (%d points fitted, "
              "%.1f s)", FIGURE_POINTS, metrics["fitting_samples_rel_l2_before"],
