@@ -134,6 +134,8 @@ def test_noise_free_demo_predicts_held_out_views_and_fits_stencils(demo_run):
     ks = model.ks.mean(axis=1)[capture.visible & (truth.region == 0)]
     p10, p90 = np.percentile(ks, [10, 90]) / np.median(ks)
     assert p10 >= 0.94 and p90 <= 1.06
+    paint = capture.visible & (truth.region == 1)                            # isotropic: no turn field (1 %)
+    assert np.mean(model.rotation[paint] != 0) < 0.05
     marker = capture.visible & (truth.kd.mean(axis=1) < 0.01) & (truth.region < 0)
     assert marker.any() and np.median(model.ks.mean(axis=1)[marker] + model.kd.mean(axis=1)[marker]) < 0.02
     params = metrics(demo_run, "demo", "params")

@@ -89,6 +89,26 @@ def stretched(model: SVBRDF, s: np.ndarray) -> SVBRDF:
     return replace(model, ndf=ndf, area=area)
 
 
+def isotropic(model: SVBRDF, tolerance: float) -> np.ndarray:
+    """(R,) bool: representatives whose NDF turned by a quarter is itself within ``tolerance`` (eq. 15's
+    relative distance): their turn is meaningless, and they get none."""
+    grid, d = model.grid, model.ndf.astype(float)
+    full = np.ones((len(d),) + grid.shape)
+    turned = np.stack([rotate_tuple(t, full[0], grid, grid.n_phi / 4)[0] for t in d])
+    return np.array([pairwise_distance(d[k:k + 1], full[:1], turned[k:k + 1], full[:1], grid)[0, 0] < tolerance
+                     for k in range(len(d))])
+
+
+def materials(model: SVBRDF, settings: Settings) -> tuple[np.ndarray, np.ndarray]:
+    """The material of every representative (R,) (kd within ``material_tolerance``,
+    :func:`facetsynth.cluster.material_groups`, as params groups them) and every point's representative of
+    largest eq. 18 weight (P,)."""
+    reps = (np.arange(model.ndf.shape[0]) if model.representatives is None
+            else np.asarray(model.representatives, np.intp))
+    owner = model.neighbours[np.arange(model.n_points), np.argmax(model.weights, axis=1)]
+    return material_groups(model.kd[reps], settings.material_tolerance), owner
+
+
 def share_representatives(model: SVBRDF, capture: RectifiedCapture, specular, valid,
                           settings: Settings) -> tuple[SVBRDF, list]:
     """One NDF per material, turned point by point: every representative of a material (grouped by kd) whose
@@ -102,10 +122,8 @@ def share_representatives(model: SVBRDF, capture: RectifiedCapture, specular, va
     taken where the samples do not disagree: on up to ``material_points`` of the material's points, each
     turned as :func:`choose_turns` would, its squared error (:func:`fitted_error`) at most
     ``material_margin`` above the pipeline's mixtures' (one NDF is the simpler model: a tie goes to it)."""
-    reps = (np.arange(model.ndf.shape[0]) if model.representatives is None
-            else np.asarray(model.representatives, np.intp))
-    material = material_groups(model.kd[reps], settings.material_tolerance)
-    owner = model.neighbours[np.arange(model.n_points), np.argmax(model.weights, axis=1)]
+    material, owner = materials(model, settings)
+    flat = isotropic(model, settings.share_distance)
     grid, d = model.grid, model.ndf.astype(float)
     full = np.ones(grid.shape)
     neighbours, weights = model.neighbours.copy(), model.weights.astype(float).copy()
@@ -121,7 +139,7 @@ def share_representatives(model: SVBRDF, capture: RectifiedCapture, specular, va
         if members.size < 2:
             continue
         main = members[np.argmax(np.bincount(owner[capture.visible], minlength=len(d))[members])]
-        isotropic = distance(main, main, grid.n_phi / 4) < settings.share_distance
+        round_lobe = bool(flat[main])
         phi, _ = relative_rotation(d[members], np.ones_like(d[members]), d[main], full, grid,
                                    max_shift=grid.n_phi // 4)
         shared = []
@@ -133,7 +151,7 @@ def share_representatives(model: SVBRDF, capture: RectifiedCapture, specular, va
             points = np.flatnonzero(owner == j)
             trial_nb[points], trial_w[points] = main, 0.0
             trial_w[points, 0] = 1.0
-            trial_rot[points] += 0.0 if isotropic else turn_j
+            trial_rot[points] += 0.0 if round_lobe else turn_j
             shared.append({"representative": int(j), "turn_deg": round(float(np.degrees(turn_j)), 2),
                            "distance": round(gap, 5), "points": int(points.size)})
         if not shared:
@@ -147,11 +165,11 @@ def share_representatives(model: SVBRDF, capture: RectifiedCapture, specular, va
         taken = errors[1] <= (1.0 + settings.material_margin) * errors[0]
         if taken:
             neighbours, weights, rotation = trial_nb, trial_w, trial_rot
-        records.append({"material": int(m), "main": int(main), "isotropic": bool(isotropic), "shared": shared,
+        records.append({"material": int(m), "main": int(main), "isotropic": round_lobe, "shared": shared,
                         "taken": bool(taken), "sse_relative": round(errors[1] / max(errors[0], 1e-300), 4)})
         log.info("material %d: %d of its %d other representatives are its main one (%d)%s turned: %s; squared "
                  "error after the turn search %.4f of the pipeline's: %s", m, len(shared), members.size - 1, main,
-                 " (isotropic: not)" if isotropic else "", [(r["representative"], r["turn_deg"], r["distance"])
+                 " (isotropic: not)" if round_lobe else "", [(r["representative"], r["turn_deg"], r["distance"])
                                                             for r in shared],
                  records[-1]["sse_relative"], "taken" if taken else "NOT taken")
     return replace(model, neighbours=neighbours, weights=weights, rotation=rotation), records
@@ -175,10 +193,7 @@ def choose_per_material(model: SVBRDF, capture: RectifiedCapture, specular, vali
     more than ``settings.material_margin`` (elsewhere the samples do not tell the values apart, and the
     pipeline's stays). ``apply(model, representatives, points, value)`` is the model with the value set.
     Returns the model with every material's choice and a record per material."""
-    reps = (np.arange(model.ndf.shape[0]) if model.representatives is None
-            else np.asarray(model.representatives, np.intp))
-    material = material_groups(model.kd[reps], settings.material_tolerance)
-    owner = model.neighbours[np.arange(model.n_points), np.argmax(model.weights, axis=1)]
+    material, owner = materials(model, settings)
     ladder = np.asarray(sorted(ladder), float)
     records = []
     for m in np.unique(material) if ladder.size else []:
@@ -229,8 +244,9 @@ def with_stretch(model: SVBRDF, representatives: np.ndarray, points: np.ndarray,
 def choose_turns(model: SVBRDF, capture: RectifiedCapture, specular, valid, settings: Settings,
                  threads: int = 1, points: np.ndarray | None = None) -> tuple[SVBRDF, dict]:
     """Each point's NDF as the one representative, turned by whole sectors within ``turn_window_deg``, that
-    best explains its specular samples (:func:`facetsynth.refine.best_turns`; candidates: the
-    representatives of its eq. 18 mixture), where that lowers its error by more than ``turn_margin`` against
+    best explains its specular samples (:func:`facetsynth.refine.best_turns`; candidates: the anisotropic
+    representatives of its eq. 18 mixture of its own material; a point whose NDF is one isotropic
+    representative gets no turn), where that lowers its error by more than ``turn_margin`` against
     the pipeline's mixture and turn; elsewhere (an isotropic lobe: every turn fits alike) the pipeline's NDF
     stays. A cluster's points shared one frame unless the cluster turned as a whole: at its borders the
     lobe's axis stepped (the demo's wedges, the Mitsuba copper's blocks, issue 29). ``points``: only these
@@ -243,6 +259,9 @@ def choose_turns(model: SVBRDF, capture: RectifiedCapture, specular, valid, sett
     neighbours, weights = model.neighbours.copy(), model.weights.astype(float).copy()
     gain = np.zeros(n)
     tables = model._ndf_flat
+    material, owner = materials(model, settings)
+    flat = isotropic(model, settings.share_distance)
+    rotation[flat[owner] & (weights.max(axis=1) >= 1.0)] = 0.0     # one isotropic NDF: no turn field
     views = unit(capture.view_position - capture.points)
 
     def tile_turns(index: np.ndarray) -> None:
@@ -266,7 +285,9 @@ def choose_turns(model: SVBRDF, capture: RectifiedCapture, specular, valid, sett
         current = urr - np.divide(np.clip(ugr, 0, None) ** 2, ugg, out=np.zeros_like(ugg), where=ugg > 0)
         t, p = model.grid.coordinates(turn(h, rotation[at]))
         offsets = np.searchsorted(pp, np.arange(index.size + 1))
-        candidates = np.where(model.weights[index] != 0, model.neighbours[index], -1).astype(np.int64)
+        nb = model.neighbours[index]
+        same = material[nb] == material[owner[index]][:, None]       # the point's own material, turnable
+        candidates = np.where((model.weights[index] != 0) & same & ~flat[nb], nb, -1).astype(np.int64)
         err, rep, k = best_turns(offsets, t, p, denom, r, u, candidates, tables, model.grid.n_theta,
                                  model.grid.n_phi, window)
         better = (rep >= 0) & (err < (1.0 - settings.turn_margin) * current)
