@@ -86,9 +86,12 @@ def test_k_follows_the_number_of_distinct_ndf_shapes():
 @pytest.fixture(scope="module")
 def card_run(repo, tmp_path_factory):
     """card (four isotropic quadrants) with the defaults — the demo rig, sensor noise, the grid chosen from the
-    lobes (24 x 96 here), representatives from the data — up to synthesize."""
+    lobes (24 x 96 here), representatives from the data — up to synthesize, on all its lights: the figures
+    below are synthesis's (holding out issue 29's 10 % raises the card's NDF error 0.261 -> 0.326: its broad
+    lobes' partial NDFs thin out; docs/decisions.md "The fit reproduces what it saw")."""
     workdir = make_workdir(repo, tmp_path_factory.mktemp("card"), "card\tvirtual\tresources/scenes/card.yaml\t\n")
-    done = snakemake(workdir, "results/card/synthesize/metrics.json")
+    done = snakemake(workdir, "results/card/synthesize/metrics.json", "--config",
+                     "selfcheck={heldout_every: 0, relit_every: 8}")
     assert done.returncode == 0, done.stderr[-3000:]
     return workdir
 

@@ -137,7 +137,7 @@ def test_rows_from_a_results_tree(tmp_path):
     assert row["preset_s"] == pytest.approx(sum(v for k, v in seconds.items() if k not in ("capture", "hdr")))
     assert row["synthesize_s"] == 8.0 and row["capture_s"] == 1.0
     assert row["cpu_s"] == pytest.approx(row["wall_s"])     # the fake files' cpu_time equals s
-    assert row["peak_mem_mb"] == 900.0          # params (the 9th stage); baseline_ward left out
+    assert row["peak_mem_mb"] == 1000.0         # refine (the 10th stage); baseline_ward left out
     assert (row["heldout_psnr_db"], row["ndf_rel_l2_median"], row["resolution"]) == (33.5, 0.21, 64)
     assert row["partial_ndf_rel_l2_median"] is None and row["n_phi"] is None     # absent records stay empty
 

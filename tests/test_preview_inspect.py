@@ -135,7 +135,7 @@ def test_inspect_lists_stages_figures_and_warnings(tmp_path, capsys):
                                              "2026-12-03 01:00:01,000 WARNING facetsynth.stages.hdr: 3 dark "
                                              "frames\n" * 2)
     lines = summarise(sample)
-    assert lines[0] == f"{sample}: 3 of 12 stages done"
+    assert lines[0] == f"{sample}: 3 of 14 stages done"
     assert any(line.split() == ["hdr", "done:", "frames", "480,", "saturated", "pixels", "12,", "dark", "frames",
                                 "0"] for line in lines)
     assert any("168x160 points (auto)" in line for line in lines)
