@@ -67,7 +67,9 @@ def run(svbrdf: str | Path, manifest: str | Path, metrics_out: str | Path, image
         scores, picture = FrameScores(), None
         for q in tqdm(frames, desc=f"selfcheck: {name}", unit="frame"):
             light = m["frames"][q]["light"]
-            measured, clipped = read_frame(m["frames"][q]["exposures"][0]["file"])
+            exposure = m["frames"][q]["exposures"][0]             # hdr's merged frame (time 1: radiance)
+            measured, clipped = read_frame(exposure["file"])
+            measured = measured / float(exposure["time"])
             predicted = renderer.radiance(light["position"], light["intensity"])
             diffuse = renderer.radiance(light["position"], light["intensity"], diffuse_only=True)
             scores.add(q, measured, predicted, diffuse, sample & ~clipped)
