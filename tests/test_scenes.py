@@ -38,10 +38,14 @@ SHEET = (f"uniform\tvirtual\tresources/scenes/uniform.yaml\t\n"
 
 @pytest.fixture(scope="module")
 def scenes(repo, tmp_path_factory):
+    """The scenes fitted on all their lights: the figures below are claims at 480 lights. With issue 29's
+    self-check holding 48 of them out (the default), uniform-480 splits into 3 representatives (NDF spread
+    0.072) and the tiles' pipeline spread rises to 0.29 (0.17 after refine), while the held-out views improve
+    (docs/decisions.md, "The fit reproduces what it saw"; docs/accuracy.md measures the default)."""
     workdir = make_workdir(repo, tmp_path_factory.mktemp("scenes"), SHEET, resolution=None)   # native: 168 x 168
     targets = ["results/uniform/params/metrics.json", "results/uniform-480/params/metrics.json",
                "results/rgl-quadrants-480/validate/metrics.json", "results/ggx-tiles-480/validate/metrics.json"]
-    done = snakemake(workdir, *targets)
+    done = snakemake(workdir, *targets, "--config", "selfcheck={heldout_every: 0, relit_every: 8}")
     assert done.returncode == 0, done.stderr[-3000:]
     return workdir
 

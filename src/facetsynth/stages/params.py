@@ -359,18 +359,23 @@ def run(geometry: str | Path, kd_path: str | Path, specular: str | Path, valid: 
             if sel.any() else None
         log.info("eta |error| median %s (fitted points: %s), ks median rel error %s", metrics["eta_abs_error_median"],
                  metrics["eta_abs_error_median_fitted"], metrics["ks_median_rel_error"])
-        names = [r.get("name", f"region{k}") for k, r in enumerate(Scene.load(capture.truth_scene).regions)]
-        names = [f"{nm}#{k}" if names.count(nm) > 1 else nm for k, nm in enumerate(names)]
-        spread, skipped = ndf_spread(model, truth, names, capture.visible)
-        metrics["ndf_spread"] = spread
-        metrics["ndf_spread_skipped"] = skipped
-        medians = [v["median"] for v in spread.values() if v["median"] is not None]
-        metrics["ndf_spread_max_median"] = float(max(medians)) if medians else None
-        metrics["ndf_spread_definition"] = (
-            "per truth region with one frame everywhere (any material kind): each point's final "
-            "normalised eq. 18 NDF on the model's grid against the region's mean NDF, relative L2 solid-angle "
-            "weighted over the whole hemisphere grid; median and 90th percentile over <= 2000 evenly strided "
-            "points; ndf_spread_max_median = the largest median")
-        for name, v in spread.items():
-            log.info("NDF spread in %s: median %s, p90 %s over %d points", name, v["median"], v["p90"], v["points"])
+        metrics.update(spread_scores(model, capture, truth))
     write_json(metrics_out, metrics)
+
+
+def spread_scores(model: SVBRDF, capture: RectifiedCapture, truth: MaterialMaps) -> dict:
+    """``ndf_spread`` (:func:`ndf_spread`) of ``model`` per named truth region of a virtual capture, with its
+    largest median and definition: the metrics of params, and of refine on the delivered model."""
+    names = [r.get("name", f"region{k}") for k, r in enumerate(Scene.load(capture.truth_scene).regions)]
+    names = [f"{nm}#{k}" if names.count(nm) > 1 else nm for k, nm in enumerate(names)]
+    spread, skipped = ndf_spread(model, truth, names, capture.visible)
+    medians = [v["median"] for v in spread.values() if v["median"] is not None]
+    for name, v in spread.items():
+        log.info("NDF spread in %s: median %s, p90 %s over %d points", name, v["median"], v["p90"], v["points"])
+    return {"ndf_spread": spread, "ndf_spread_skipped": skipped,
+            "ndf_spread_max_median": float(max(medians)) if medians else None,
+            "ndf_spread_definition": (
+                "per truth region with one frame everywhere (any material kind): each point's final "
+                "normalised eq. 18 NDF on the model's grid against the region's mean NDF, relative L2 solid-angle "
+                "weighted over the whole hemisphere grid; median and 90th percentile over <= 2000 evenly strided "
+                "points; ndf_spread_max_median = the largest median")}

@@ -365,10 +365,12 @@ def samples_rel_l2(model: SVBRDF, capture: RectifiedCapture, specular, valid) ->
 
 def truth_scores(model: SVBRDF, capture: RectifiedCapture) -> dict:
     """kd and ks of the written model against a virtual capture's truth (median relative error over the
-    visible points whose truth is eq. 6: ``MaterialMaps.analytic``, kd / ks > 0); {} for a real capture."""
+    visible points whose truth is eq. 6: ``MaterialMaps.analytic``, kd / ks > 0) and its NDF spread per
+    homogeneous region (:func:`facetsynth.stages.params.spread_scores`); {} for a real capture."""
     truth = capture.truth()
     if truth is None:
         return {}
+    from .params import spread_scores
     on = capture.visible & (truth.region >= 0)
     analytic = getattr(truth, "analytic", None)
     if analytic is not None:
@@ -379,7 +381,7 @@ def truth_scores(model: SVBRDF, capture: RectifiedCapture) -> dict:
         sel = on & (t > 0)
         err = np.abs(fitted.mean(axis=1)[sel] - t[sel]) / t[sel]
         out[f"{name}_median_rel_error"] = float(np.median(err)) if sel.any() else None
-    return out
+    return {**out, **spread_scores(model, capture, truth)}
 
 
 def run(model: str | Path, geometry: str | Path, specular: str | Path, valid: str | Path,
@@ -410,6 +412,10 @@ def run(model: str | Path, geometry: str | Path, specular: str | Path, valid: st
     truth = truth_scores(refined, capture)
     if truth:
         before = truth_scores(pipeline, capture)
-        truth.update({f"{k}_before": v for k, v in before.items()})
-        log.info("against the truth: %s", truth)
+        truth.update({f"{k}_before": before[k] for k in ("kd_median_rel_error", "ks_median_rel_error",
+                                                           "ndf_spread_max_median")})
+        log.info("against the truth: kd %s, ks %s, largest NDF spread %s (before: %s, %s, %s)",
+                 *(truth.get(k) for k in ("kd_median_rel_error", "ks_median_rel_error", "ndf_spread_max_median")),
+                 *(truth.get(f"{k}_before") for k in ("kd_median_rel_error", "ks_median_rel_error",
+                                                       "ndf_spread_max_median")))
     write_json(metrics_out, {"ground_truth": capture.truth_scene is not None, **metrics, **truth})
