@@ -2,7 +2,8 @@
 #   make run   - set up .venv, install facetsynth, run the workflow on the demo sample
 #   make test  - set up .venv, install facetsynth with test extras, run the test suite
 #   make test-scenes - the slow whole-workflow tests: the scenes of issue 13 at native resolution, issue 4's
-#                synthesis scenes, the demo with its report and exports (about 20 min; CI runs them after make test)
+#                synthesis scenes, the demo with its report and exports, the Mitsuba copper at 480 lights
+#                (about 27 min; CI runs them after make test)
 #   make test-cluster - two samples through a single-node SLURM cluster on localhost against a local run (about
 #                3 min; installs Debian's slurmctld, slurmd, slurm-client and munge when missing: needs root)
 #   make bench - run every preset (fast, balanced, accurate) on demo, wallpaper, satin (native: 168^2) and
