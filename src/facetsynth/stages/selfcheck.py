@@ -32,6 +32,7 @@ log = logging.getLogger(__name__)
 # beside it). On the virtual scenes of docs/accuracy.md the self-check and the truth-based held-out views
 # agree within this order (docs/accuracy.md "Self-check").
 POOR_FIT_REL_L2 = 0.15
+PICTURE_HEIGHT = 320   # the worst frames' pictures are at least this tall (the report's figures)
 
 DEFINITION = ("relative L2 = sqrt(sum (pred - meas)^2 / sum meas^2) over the sample's pixels (every sub-pixel "
               "on the sample; pixels clipped in a frame left out of that frame), every frame and RGB channel of "
@@ -86,7 +87,9 @@ def run(svbrdf: str | Path, manifest: str | Path, metrics_out: str | Path, image
         if picture is not None:
             measured, predicted = picture
             peak = float(measured[sample].max()) if sample.any() else 1.0
-            _to_png(images_out / f"{name}_worst.png", side_by_side(measured, predicted, None, peak))
+            picture = side_by_side(measured, predicted, None, peak)
+            zoom = max(1, -(-PICTURE_HEIGHT // picture.shape[0]))    # small cameras: pixels shown zoom x zoom
+            _to_png(images_out / f"{name}_worst.png", picture.repeat(zoom, axis=0).repeat(zoom, axis=1))
         log.info("%s: %d frames, rel L2 %s, specular %s, frame PSNR median %s dB, worst %s dB (frame %s)", name,
                  len(frames), metrics[name]["rel_l2"], metrics[name]["specular_rel_l2"],
                  metrics[name]["frame_psnr_median_db"], metrics[name]["frame_psnr_worst_db"], worst)
