@@ -82,6 +82,16 @@ def test_the_ridge_keeps_the_prior_where_the_samples_do_not_constrain_ks():
     np.testing.assert_allclose(fb[0], b[0], rtol=2e-3)    # a point with a lobe barely feels the prior
 
 
+def test_points_without_any_sample_keep_the_prior():
+    """A tile whose points have no valid sample (found by the SLURM test's 32 x 32 tiny capture): float sums
+    of zero, and the prior returned."""
+    sums = NormalSums.of(np.zeros(0, np.intp), 4, np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)))
+    assert sums.u.dtype == float and not sums.u.any()
+    a, b = solve(sums, np.full((4, 3), 0.1), np.full((4, 3), 0.6), ridge=1e-3)
+    np.testing.assert_array_equal(a, 0.1)
+    np.testing.assert_array_equal(b, 0.6)
+
+
 def test_radiance_weights_make_rho_residuals_radiance_residuals():
     wi = np.array([[0.0, 0.6, 0.8], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]])
     r2 = np.array([0.04, 0.01, 0.02])

@@ -52,8 +52,9 @@ class NormalSums:
     def of(cls, point: np.ndarray, n_points: int, y: np.ndarray, g: np.ndarray, u: np.ndarray) -> "NormalSums":
         """Accumulate samples: ``point`` (S,) index in [0, n_points), ``y`` (S, 3) observed rho, ``g`` (S,)
         the specular factor, ``u`` (S, 3) weights."""
-        def total(values):
-            return np.stack([np.bincount(point, values[:, c], minlength=n_points) for c in range(3)], -1)
+        def total(values):      # float even without samples (bincount of nothing is an int array)
+            return np.stack([np.bincount(point, values[:, c], minlength=n_points) for c in range(3)],
+                            -1).astype(float)
         gg = g[:, None]
         return cls(total(u), total(u * gg), total(u * gg * gg), total(u * y), total(u * gg * y), total(u * y * y))
 
