@@ -1,6 +1,7 @@
 # Remaining parameters (paper 002 sec. 5.4): ks, normalised NDF, shadowing (eq. 5), eta by
-# Levenberg-Marquardt on eqs. 19-20 -> results/{sample}/params/svbrdf/; then every point's kd and ks fitted to
-# its own samples (issue 29, facetsynth.refine) -> the fitted SVBRDF folder results/{sample}/svbrdf/.
+# Levenberg-Marquardt on eqs. 19-20 -> results/{sample}/params/svbrdf/; then refine makes that model reproduce
+# its own samples (issue 29: one NDF per material, its eta and stretch, each point's NDF turn, kd and ks per
+# point; facetsynth.stages.refine) -> the fitted SVBRDF folder results/{sample}/svbrdf/.
 # Inputs from cluster and synthesize (issue 4); reachable as a target only.
 
 
@@ -54,6 +55,6 @@ rule refine:
         "results/{sample}/benchmarks/refine.tsv"
     threads: 2   # tiles of points in parallel
     resources:
-        mem_mb=1500,   # demo, 168^2 points x 1360 lights: 0.6 GB peak
+        mem_mb=1500,   # demo, 168^2 points x 1360 lights: 0.8 GB peak (tiles of points: does not grow with P)
     script:
         "../scripts/refine.py"
