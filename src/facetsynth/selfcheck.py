@@ -27,6 +27,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .metrics import frame_psnr
+
 
 def heldout_lights(n_frames: int, every: int) -> np.ndarray:
     """(F,) bool: the held-out frames, every ``every``-th from ``every // 2`` (``every`` 0: none)."""
@@ -64,10 +66,8 @@ class FrameScores:
         self.specular += float(np.sum((meas - np.asarray(diffuse, float)[mask]) ** 2))
         self.pixels += int(mask.sum())
         self.frames.append(int(frame))
-        peak = float(meas.max()) if meas.size else 0.0
-        rmse = float(np.sqrt(np.mean(err**2))) if err.size else 0.0
-        self.psnr_db.append(float("nan") if peak <= 0 else
-                            float(20 * np.log10(peak / max(rmse, peak * 10 ** (-max_db / 20)))))
+        self.psnr_db.append(float(frame_psnr(np.asarray(measured)[None], np.asarray(predicted)[None], mask,
+                                             max_db)[0]))
 
     @property
     def rel_l2(self) -> float:

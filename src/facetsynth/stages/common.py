@@ -112,6 +112,11 @@ def flag_degenerate(metrics: dict, reason: str, log: logging.Logger) -> None:
     metrics["degenerate"] = "; ".join(filter(None, [metrics.get("degenerate"), reason]))
 
 
+def strided(index: np.ndarray, at_most: int) -> np.ndarray:
+    """At most ``at_most`` entries of ``index``, evenly strided from its first (all when it has no more)."""
+    return index[::max(1, -(-index.size // at_most))]
+
+
 def tiles(n: int, size: int = TILE_POINTS):
     """Slices covering range(n) in tiles of ``size``."""
     for start in range(0, n, size):

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import InputError
 from ..fileio import atomic_dir, read_npy, write_json
 from ..frames import map_frames
 from ..metrics import finite_or_none
@@ -31,7 +32,8 @@ from ..params import normalise, projected_area
 from ..refine import NormalSums, best_turns, parabola_minimum, radiance_weights, solve, stretch
 from ..render import light_geometry, unit
 from ..svbrdf import SVBRDF
-from .common import TILE_POINTS, RectifiedCapture, StageSettings, tiles
+from .common import TILE_POINTS, RectifiedCapture, StageSettings, strided, tiles
+from .params import spread_scores
 
 log = logging.getLogger(__name__)
 
@@ -60,20 +62,26 @@ def point_sums(model: SVBRDF, capture: RectifiedCapture, specular, valid, index:
     if index.size > TILE_POINTS:
         parts = [point_sums(model, capture, specular, valid, index[t]) for t in tiles(index.size)]
         return NormalSums(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(NormalSums)))
-    points = capture.points[index]
-    wi, r2 = light_geometry(points[:, None, :], capture.light_positions[None])
+    pp, ff, wi, u, rho_s, views = samples(capture, specular, valid, index)
+    at = index[pp]
+    area_o = model.area_at(index, views)
+    spec, c = model.specular_terms(at, wi, views[pp], area_o[pp])
+    g = spec * fresnel(c, model.eta[at])
+    return NormalSums.of(pp, len(index), rho_s + model.kd[at] / np.pi, g, u)
+
+
+def samples(capture: RectifiedCapture, specular, valid, index: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The valid samples of points ``index`` lit from above (i.z > 0), finite: (row in ``index`` (S,), frame
+    (S,), i (S, 3), radiance weights u (S, 3), the specular residual rho - kd/pi (S, 3), and the view o of
+    every point of ``index`` (N, 3))."""
+    wi, r2 = light_geometry(capture.points[index][:, None, :], capture.light_positions[None])
     rho_s = np.asarray(specular[index], np.float32)
     ok = np.asarray(valid[index], bool) & (wi[..., 2] > 0) & capture.visible[index][:, None]
     ok &= np.isfinite(rho_s).all(axis=-1)
     pp, ff = np.nonzero(ok)
-    at = index[pp]
-    views = unit(capture.view_position - points)
-    area_o = model.area_at(index, views)
-    spec, c = model.specular_terms(at, wi[pp, ff], views[pp], area_o[pp])
-    g = spec * fresnel(c, model.eta[at])
-    y = rho_s[pp, ff].astype(float) + model.kd[at] / np.pi
     u = radiance_weights(wi[pp, ff], r2[pp, ff], capture.light_intensities[ff])
-    return NormalSums.of(pp, len(index), y, g, u)
+    views = unit(capture.view_position - capture.points[index])
+    return pp, ff, wi[pp, ff], u, rho_s[pp, ff].astype(float), views
 
 
 def stretched(model: SVBRDF, s: np.ndarray) -> SVBRDF:
@@ -93,9 +101,9 @@ def isotropic(model: SVBRDF, tolerance: float) -> np.ndarray:
     """(R,) bool: representatives whose NDF turned by a quarter is itself within ``tolerance`` (eq. 15's
     relative distance): their turn is meaningless, and they get none."""
     grid, d = model.grid, model.ndf.astype(float)
-    full = np.ones((len(d),) + grid.shape)
+    full = np.ones((1,) + grid.shape)
     turned = np.stack([rotate_tuple(t, full[0], grid, grid.n_phi / 4)[0] for t in d])
-    return np.array([pairwise_distance(d[k:k + 1], full[:1], turned[k:k + 1], full[:1], grid)[0, 0] < tolerance
+    return np.array([pairwise_distance(d[k:k + 1], full, turned[k:k + 1], full, grid)[0, 0] < tolerance
                      for k in range(len(d))])
 
 
@@ -157,8 +165,7 @@ def share_representatives(model: SVBRDF, capture: RectifiedCapture, specular, va
         if not shared:
             continue
         # taken where the samples agree: both turned point by point on the material's sample of points
-        index = np.flatnonzero(capture.visible & np.isin(owner, members))
-        index = index[::max(1, -(-index.size // settings.material_points))]
+        _, index = material_points(capture, owner, members, settings.material_points)
         trial = replace(model, neighbours=trial_nb, weights=trial_w, rotation=trial_rot)
         errors = [fitted_error(choose_turns(candidate, capture, specular, valid, settings, points=index)[0],
                                capture, specular, valid, index, settings.ridge) for candidate in (model, trial)]
@@ -173,6 +180,14 @@ def share_representatives(model: SVBRDF, capture: RectifiedCapture, specular, va
                                                             for r in shared],
                  records[-1]["sse_relative"], "taken" if taken else "NOT taken")
     return replace(model, neighbours=neighbours, weights=weights, rotation=rotation), records
+
+
+def material_points(capture: RectifiedCapture, owner: np.ndarray, members: np.ndarray,
+                    at_most: int) -> tuple[np.ndarray, np.ndarray]:
+    """The visible points of a material (whose largest eq. 18 weight is one of its representatives
+    ``members``), and at most ``at_most`` of them, evenly strided: the ones its choices are scored on."""
+    points = np.flatnonzero(capture.visible & np.isin(owner, members))
+    return points, strided(points, at_most)
 
 
 def fitted_error(model: SVBRDF, capture: RectifiedCapture, specular, valid, index: np.ndarray,
@@ -198,8 +213,7 @@ def choose_per_material(model: SVBRDF, capture: RectifiedCapture, specular, vali
     records = []
     for m in np.unique(material) if ladder.size else []:
         members = np.flatnonzero(material == m)
-        points = np.flatnonzero(capture.visible & np.isin(owner, members))
-        index = points[::max(1, -(-points.size // settings.material_points))]
+        points, index = material_points(capture, owner, members, settings.material_points)
         if index.size == 0:
             continue
 
@@ -262,23 +276,17 @@ def choose_turns(model: SVBRDF, capture: RectifiedCapture, specular, valid, sett
     material, owner = materials(model, settings)
     flat = isotropic(model, settings.share_distance)
     rotation[flat[owner] & (weights.max(axis=1) >= 1.0)] = 0.0     # one isotropic NDF: no turn field
-    views = unit(capture.view_position - capture.points)
 
     def tile_turns(index: np.ndarray) -> None:
-        wi, r2 = light_geometry(capture.points[index][:, None, :], capture.light_positions[None])
-        rho_s = np.asarray(specular[index], np.float32)
-        ok = np.asarray(valid[index], bool) & (wi[..., 2] > 0) & capture.visible[index][:, None]
-        ok &= np.isfinite(rho_s).all(axis=-1)
-        pp, ff = np.nonzero(ok)
+        pp, _, i, u, rho_s, views = samples(capture, specular, valid, index)
         if pp.size == 0:
             return
-        at, i, o = index[pp], wi[pp, ff], views[index[pp]]
+        at, o = index[pp], views[pp]
         h = half_vector(i, o)
-        c = 0.5 * (np.abs(np.sum(i * h, -1)) + np.abs(np.sum(o * h, -1)))
-        area_o = model.area_at(index, views[index])
+        c = 0.5 * (np.abs(np.sum(i * h, -1)) + np.abs(np.sum(o * h, -1)))     # as SVBRDF.specular_terms
+        area_o = model.area_at(index, views)
         denom = fresnel(c, model.eta[at]) / (4.0 * model.area_at(at, i) * area_o[pp])
-        r = rho_s[pp, ff].mean(axis=-1).astype(float)
-        u = radiance_weights(i, r2[pp, ff], capture.light_intensities[ff]).mean(axis=-1)
+        r, u = rho_s.mean(axis=-1), u.mean(axis=-1)
         g0 = model.ndf_at(at, h) * denom
         ugr, ugg = (np.bincount(pp, v, minlength=index.size) for v in (u * g0 * r, u * g0 * g0))
         urr = np.bincount(pp, u * r * r, minlength=index.size)
@@ -353,8 +361,7 @@ def samples_rel_l2(model: SVBRDF, capture: RectifiedCapture, specular, valid) ->
     """sqrt(sum u (rho - model)^2 / sum u rho^2) over the valid samples of up to FIGURE_POINTS visible points
     (evenly strided): the model against the samples it was fitted on, in radiance (u of
     :func:`facetsynth.refine.radiance_weights`), on the rectified grid."""
-    index = np.flatnonzero(capture.visible)
-    index = index[::max(1, -(-index.size // FIGURE_POINTS))]
+    index = strided(np.flatnonzero(capture.visible), FIGURE_POINTS)
     if index.size == 0:
         return None
     sums = point_sums(model, capture, specular, valid, index)
@@ -370,7 +377,6 @@ def truth_scores(model: SVBRDF, capture: RectifiedCapture) -> dict:
     truth = capture.truth()
     if truth is None:
         return {}
-    from .params import spread_scores
     on = capture.visible & (truth.region >= 0)
     analytic = getattr(truth, "analytic", None)
     if analytic is not None:
@@ -393,7 +399,6 @@ def run(model: str | Path, geometry: str | Path, specular: str | Path, valid: st
     spec, ok = read_npy(specular, mmap_mode="r"), read_npy(valid, mmap_mode="r")
     for path, a in ((specular, spec), (valid, ok)):
         if a.shape[0] != n:
-            from ..errors import InputError
             raise InputError(path, f"has {a.shape[0]} rows, the rectified grid {n} points")
     refined, metrics = fit(pipeline, capture, spec, ok, settings, threads)
     with atomic_dir(svbrdf_out) as staging:
