@@ -312,8 +312,8 @@ def test_pipeline_model_is_finite_and_predicts_the_capture(extreme_run):
     # the capture's own frames: predicted against the true radiance at the rectified points
     pts = cap.points
     o = cap.view_directions(True)
-    q = np.arange(0, len(cap.light_positions), 7)
-    li, r2 = light_geometry(pts[:, None, :], cap.light_positions[q][None])
+    q = np.arange(0, len(cap.lights), 7)
+    li, r2 = light_geometry(pts[:, None, :], cap.lights[q][None])
     irr = (np.clip(li[..., 2], 0, None) / r2)[..., None] * cap.light_intensities[q][None]
     idx = np.repeat(np.arange(cap.n_points), len(q))
     pred = model.eval_index(idx, li.reshape(-1, 3), np.repeat(o, len(q), 0)).reshape(irr.shape) * irr
@@ -361,7 +361,7 @@ def write_rectified(folder: Path, scene_text: str, plane: PlaneGrid, lights: np.
         frames.append({"file": f"frames/{q:04d}.exr",
                        "light": {"position": light.tolist(), "intensity": [0.3, 0.3, 0.3]}})
     write_json(folder / "geometry.json", {"grid": plane.to_dict(), "visible": visible.astype(int).tolist(),
-                                          "frames": frames, "view_position": view.tolist(),
+                                          "frames": frames, "view_point": [*view.tolist(), 1.0],
                                           "truth": {"scene": "scene.yaml"}})
     return folder / "geometry.json"
 

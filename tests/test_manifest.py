@@ -39,7 +39,7 @@ def test_good_manifest_loads_with_absolute_frame_paths_and_unknown_fields(captur
     assert loaded["frames"][0]["exposures"][0]["file"] == str(capture / "frames" / "0000_e0.exr")
     assert manifest.load(capture)["rig"]["name"] == "someone else's rig"   # the folder works too
     np.testing.assert_allclose(manifest.camera(loaded).centre, [0, 0, 1])
-    np.testing.assert_allclose(manifest.light_positions(loaded), [[0, 0.1, 0.04]])
+    np.testing.assert_allclose(manifest.lights(loaded["frames"]), [[0, 0.1, 0.04, 1]])
 
 
 @pytest.mark.parametrize("mutate, where", [

@@ -154,7 +154,7 @@ def write_standin(folder, fresnel_in_ndf="lobe"):
     frames = [{"light": {"position": p.tolist(), "intensity": [1.0, 1.0, 1.0]}, "file": f"frames/{q:04d}.exr"}
               for q, p in enumerate(lights)]
     write_json(folder / "geometry.json", {"grid": plane.to_dict(), "visible": [True] * 64, "frames": frames,
-                                          "view_position": view.tolist(), "truth": {"scene": "scene.yaml"}})
+                                          "view_point": [*view.tolist(), 1.0], "truth": {"scene": "scene.yaml"}})
     capture = RectifiedCapture.load(folder / "geometry.json")
     truth = Scene.load(folder / "scene.yaml").parameters(capture.points[:, :2])
     wi, _ = light_geometry(capture.points[:, None, :], lights[None])

@@ -85,8 +85,8 @@ def test_pooled_partial_ndf_is_the_same_wherever_its_points_sit_and_beats_one_po
                        views[:8], GRID)
         single.append(pndf.relative_l2(own.ndf, np.broadcast_to(reference, own.ndf.shape), own.confidence >= 0.5,
                                        GRID))
-        fit = pndf.pooled_fit(rho, ok, points, views, lights, own.confidence[:1].repeat(len(points), 0), ref_view,
-                              GRID)
+        wi, _ = light_geometry(points[:, None], lights[None])
+        fit = pndf.pooled_fit(rho, ok, wi, views, own.confidence[:1].repeat(len(points), 0), ref_view, GRID)
         assert fit.converged.all() and np.isfinite(fit.ndf).all() and (fit.ndf >= 0).all()
         pooled.append(fit)
     mask = (pooled[0].confidence >= 0.5) & (pooled[1].confidence >= 0.5)
@@ -172,7 +172,7 @@ def test_relative_rotation_finds_the_turn_of_an_anisotropic_lobe_and_pooling_und
     assert np.median(np.abs(phi + turns)) < np.radians(1.0)
     reference = pndf.recoverable_ndf(np.full((1, 3), 0.8), np.array([1.5]),
                                      microfacet.ndf(grid.directions, 0.06, 0.3, 0.0)[None], views[:1], grid)
-    args = (rho, np.ones(rho.shape, bool), points, views, lights, own.confidence, views[0], grid)
+    args = (rho, np.ones(rho.shape, bool), wi, views, own.confidence, views[0], grid)
     undone = pndf.pooled_fit(*args, rotation=phi)
     blurred = pndf.pooled_fit(*args)
     mask = undone.confidence >= 0.5

@@ -132,3 +132,138 @@ def test_eq18_mixture_of_representatives_is_the_mixture_of_ndfs(truth_model):
     np.testing.assert_allclose(d, expected, rtol=1e-12)
     a, b = mixed.eval_index(idx, wi, wo), mixed.eval_index(idx, wo, wi)
     np.testing.assert_array_equal(a, b)
+
+
+# --- shading normals (mesostructure) ---------------------------------------------------------------------------
+
+def tilted(theta_deg, phi_deg):
+    t, p = np.radians(theta_deg), np.radians(phi_deg)
+    return np.array([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)])
+
+
+def random_normals(seed=0, max_tilt=35.0):
+    rng = np.random.default_rng(seed)
+    return np.stack([tilted(a, b) for a, b in zip(rng.uniform(0, max_tilt, P), rng.uniform(0, 360, P))])
+
+
+def with_normal(model, normal):
+    from dataclasses import replace
+    return replace(model, normal=None if normal is None else np.array(normal, float))
+
+
+def test_normal_frames_and_flat_models_are_unchanged(truth_model, tmp_path):
+    """normal None: frames are the identity, eval(points, ...) is eval_index at the points' cells bit for bit (the
+    code path of models before shading normals), a folder without normal.exr loads flat; a field of n = +z
+    gives the same numbers as None."""
+    _, model = truth_model
+    assert model.normal is None
+    index = np.arange(P)
+    np.testing.assert_array_equal(model.frames(index), np.broadcast_to(np.eye(3), (P, 3, 3)))
+    assert model.frames(index.reshape(4, 5)).shape == (4, 5, 3, 3)
+    rng = np.random.default_rng(20)
+    n = 4000
+    idx = rng.integers(0, P, n)
+    points = PLANE.points3d().reshape(-1, 3)[idx]
+    wi, wo = upper(rng, n), upper(rng, n)
+    wo[:300, 2] *= -1                                                     # some below the horizon
+    unit = [d / np.linalg.norm(d, axis=-1, keepdims=True) for d in (wi, wo)]   # as eval normalises
+    np.testing.assert_array_equal(model.eval(points, wi, wo), model.eval_index(idx, *unit))
+    flat = with_normal(model, np.tile([0.0, 0.0, 1.0], (P, 1)))
+    np.testing.assert_array_equal(flat.frames(index), model.frames(index))
+    np.testing.assert_array_equal(flat.eval(points, wi, wo), model.eval(points, wi, wo))
+    model.save(tmp_path / "flat")
+    assert "normal" not in facetsynth.SVBRDF.load(tmp_path / "flat").info["files"]
+    assert not (tmp_path / "flat" / "normal.exr").exists()
+    assert SVBRDF.load(tmp_path / "flat").normal is None
+
+
+def test_normal_exr_round_trip(truth_model, tmp_path):
+    from facetsynth.fileio import read_exr
+    _, model = truth_model
+    normal = random_normals(1)
+    bumpy = with_normal(model, normal)
+    bumpy.save(tmp_path / "svbrdf")
+    channels, _ = read_exr(tmp_path / "svbrdf" / "normal.exr")
+    assert {"X", "Y", "Z"} <= set(channels) and channels["X"].shape == (PLANE.rows, PLANE.cols)
+    np.testing.assert_allclose(channels["Y"].ravel(), normal[:, 1], atol=1e-7)   # row-major on the plane grid
+    loaded = SVBRDF.load(tmp_path / "svbrdf")
+    assert loaded.info["files"]["normal"] == "normal.exr"
+    np.testing.assert_allclose(loaded.normal, normal, atol=1e-7)
+    np.testing.assert_allclose(np.linalg.norm(loaded.normal, axis=1), 1.0, atol=1e-15)
+    rng = np.random.default_rng(21)
+    pts = PLANE.points3d().reshape(-1, 3)
+    wi, wo = upper(rng, P), upper(rng, P)
+    np.testing.assert_allclose(loaded.eval(pts, wi, wo), bumpy.eval(pts, wi, wo), rtol=1e-5, atol=1e-9)
+    # frames are rotations taking n to +z
+    R = loaded.frames(np.arange(P))
+    np.testing.assert_allclose(np.einsum("pij,pj->pi", R, loaded.normal), np.tile([0, 0, 1.0], (P, 1)), atol=1e-12)
+    np.testing.assert_allclose(R @ np.swapaxes(R, 1, 2), np.broadcast_to(np.eye(3), (P, 3, 3)), atol=1e-12)
+
+
+def test_constant_tilted_normal_is_the_flat_model_with_directions_rotated(truth_model):
+    """rho(x, i, o) with n(x) = n is the flat model's rho(x, R i, R o), R n = +z; 0 below either horizon (the
+    shading frame's and the sample plane's); reciprocal, finite, non-negative."""
+    from facetsynth.normals import shading_frames
+    _, model = truth_model
+    n = tilted(25.0, 130.0)
+    R = shading_frames(n)
+    bumpy = with_normal(model, np.tile(n, (P, 1)))
+    rng = np.random.default_rng(22)
+    m = 6000
+    idx = rng.integers(0, P, m)
+    points = PLANE.points3d().reshape(-1, 3)[idx]
+    wi, wo = rng.normal(size=(2, m, 3))
+    wi /= np.linalg.norm(wi, axis=1, keepdims=True)
+    wo /= np.linalg.norm(wo, axis=1, keepdims=True)
+    got = bumpy.eval(points, wi, wo)
+    expected = model.eval(points, wi @ R.T, wo @ R.T)
+    above = (wi[:, 2] > 0) & (wo[:, 2] > 0) & (wi @ n > 0) & (wo @ n > 0)
+    assert above.sum() > 500 and (~above).sum() > 500
+    np.testing.assert_allclose(got[above], expected[above], rtol=1e-12, atol=1e-15)
+    assert (got[~above] == 0).all()
+    assert (expected[~above & (wi @ n > 0) & (wo @ n > 0)] > 0).all()     # lit in the frame, below the plane
+    # the highlight follows the normal: mirror directions about (nearly) n, not about +z (h not exactly at the
+    # grid's pole, where an anisotropic table's azimuth is undefined)
+    v = tilted(40.0, 10.0)
+    m_ = n + [0.03, 0.02, 0.0]
+    m_ /= np.linalg.norm(m_)
+    mirror = 2 * (v @ m_) * m_ - v
+    centre = np.zeros(3)
+    assert bumpy.eval(centre, mirror, v)[0] > 3 * bumpy.eval(centre, v * [-1, -1, 1], v)[0]
+    np.testing.assert_allclose(bumpy.eval(centre, mirror, v), model.eval(centre, R @ mirror, R @ v), rtol=1e-12)
+    np.testing.assert_array_equal(bumpy.eval(points, wi, wo), bumpy.eval(points, wo, wi))
+    assert np.isfinite(got).all() and (got >= 0).all()
+
+
+@pytest.mark.parametrize("bad", ["nan", "not unit", "facing down", "horizontal", "no Z channel", "wrong size",
+                                 "missing"])
+def test_bad_normal_files_are_rejected_in_one_line(truth_model, tmp_path, bad):
+    from facetsynth.fileio import write_exr
+    _, model = truth_model
+    folder = tmp_path / "svbrdf"
+    with_normal(model, random_normals(2)).save(folder)
+    normal = random_normals(2).reshape(PLANE.rows, PLANE.cols, 3)
+    if bad == "nan":
+        normal[1, 2, 0] = np.nan
+    elif bad == "not unit":
+        normal[0, 3] *= 1.01
+    elif bad == "facing down":
+        normal[2, 2] = [0.0, 0.6, -0.8]
+    elif bad == "horizontal":
+        normal[3, 0] = [1.0, 0.0, 0.0]
+    channels = {c: normal[..., k] for k, c in enumerate("XYZ")}
+    if bad == "no Z channel":
+        del channels["Z"]
+    elif bad == "wrong size":
+        channels = {c: v[:, :-1] for c, v in channels.items()}
+    if bad == "missing":
+        (folder / "normal.exr").unlink()
+    else:
+        write_exr(folder / "normal.exr", channels)
+    with pytest.raises(InputError, match="normal.exr") as caught:
+        SVBRDF.load(folder)
+    message = str(caught.value)
+    assert "\n" not in message
+    print(message)
+    with pytest.raises(ValueError, match="normal"):       # in memory too: no model with bad normals
+        with_normal(model, np.tile([0.0, 0.0, -1.0], (P, 1)))

@@ -240,6 +240,6 @@ def test_diffuse_truth_reproduces_a_matte_heldout_capture(repo, tmp_path, calibr
     assert inside.sum() > 1000
     np.testing.assert_allclose(diffuse[:, inside], truth[:, inside], rtol=2e-3)       # truth stored as half floats
     nominal, _, _ = validate.diffuse_truth(Scene.load(m["truth"]["scene"]), manifest.camera(m),
-                                        manifest.light_positions(m), manifest.light_intensities(m), 1)
+                                        manifest.lights(m["frames"]), manifest.light_intensities(m["frames"]), 1)
     if calibration_error:      # the nominal rig would leave a residual "specular" part where there is none
         assert np.abs(nominal[:, inside] - truth[:, inside]).max() > 0.01 * truth[:, inside].max()

@@ -36,7 +36,7 @@ def test_manifest_is_valid_and_lights_follow_the_controller(tiny_capture):
     for frame, (steps, led) in zip(m["frames"], rig.scan()):
         assert (frame["carriage_steps"], frame["led"]) == (steps, led)
         np.testing.assert_allclose(frame["light"]["position"], rig.led_position(led, steps))
-    intensities = manifest.light_intensities(m)
+    intensities = manifest.light_intensities(m["frames"])
     assert 0.15 < intensities.min() and intensities.max() < 0.45 and intensities.std() > 0   # per-LED variation
     assert manifest.has_truth(m) and m["rig"]["firmware"].endswith("-virtual")
 

@@ -1,7 +1,12 @@
-"""Pinhole camera in the OpenCV convention (DESIGN.md sec. 4).
+"""Pinhole or orthographic camera in the OpenCV convention (DESIGN.md sec. 4).
 
 X_cam = R X + t; x right, y down, z forward; pixel (0, 0) is the centre of the
-top-left pixel. The sample plane is z = 0 in world coordinates.
+top-left pixel. The sample plane is z = 0 in world coordinates. A pinhole
+(``perspective``) camera divides by the depth; an ``orthographic`` one does not:
+(col, row, 1) = K (X_cam_x, X_cam_y, 1), fx and fy in pixels per metre, t_z unused.
+That is an RTI light dome's camera: far above a small object, looking straight down.
+Its centre is at infinity: :attr:`Camera.view_point` is homogeneous, (C, 1) for a
+pinhole and (-r3, 0), the direction towards the camera, for an orthographic one.
 """
 
 from __future__ import annotations
@@ -21,11 +26,26 @@ class Camera:
     R: np.ndarray
     t: np.ndarray
     distortion: np.ndarray = field(default_factory=lambda: np.zeros(5))
+    projection: str = "perspective"
+
+    @property
+    def orthographic(self) -> bool:
+        return self.projection == "orthographic"
 
     @property
     def centre(self) -> np.ndarray:
-        """Camera position in world coordinates, C = -R^T t (the paper's V)."""
+        """Camera position in world coordinates, C = -R^T t (the paper's V); pinhole cameras only."""
+        if self.orthographic:
+            raise ValueError("an orthographic camera has no centre: use view_point")
         return -self.R.T @ self.t
+
+    @property
+    def view_point(self) -> np.ndarray:
+        """The camera as a homogeneous world point (4,): (C, 1), or (-r3, 0) for an orthographic camera
+        (the direction towards it; r3 the third row of R). :func:`facetsynth.render.towards` takes it."""
+        if self.orthographic:
+            return np.append(-self.R[2], 0.0)
+        return np.append(self.centre, 1.0)
 
     @property
     def has_distortion(self) -> bool:
@@ -37,7 +57,8 @@ class Camera:
         Applies the OpenCV lens distortion (k1, k2, p1, p2, k3) when present.
         """
         xc = points @ self.R.T + self.t
-        x, y = xc[..., 0] / xc[..., 2], xc[..., 1] / xc[..., 2]
+        depth = 1.0 if self.orthographic else xc[..., 2]
+        x, y = xc[..., 0] / depth, xc[..., 1] / depth
         if self.has_distortion:
             k1, k2, p1, p2, k3 = np.pad(self.distortion, (0, 5 - len(self.distortion)))
             r2 = x * x + y * y
@@ -48,11 +69,15 @@ class Camera:
         return uv1[..., :2]
 
     def plane_homography(self) -> np.ndarray:
-        """H mapping sample-plane (x, y, 1) to pixel (col, row, 1): H = K [r1 r2 t].
+        """H mapping sample-plane (x, y, 1) to pixel (col, row, 1): H = K [r1 r2 t] (Zhang 2000), and for an
+        orthographic camera the affine K [r1 r2 t] with its third row (0, 0, 1).
 
-        Exact for an undistorted camera (Zhang 2000).
+        Exact for an undistorted camera.
         """
-        return self.K @ np.column_stack([self.R[:, 0], self.R[:, 1], self.t])
+        M = np.column_stack([self.R[:, 0], self.R[:, 1], self.t])
+        if self.orthographic:
+            M[2] = (0.0, 0.0, 1.0)
+        return self.K @ M
 
     def pixel_plane_points(self, supersample: int = 1) -> np.ndarray:
         """Sample-plane (x, y) seen through each pixel: (H*s, W*s, 2).

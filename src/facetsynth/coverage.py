@@ -3,7 +3,8 @@
 The rig's lights lie in a plane above the sample (the LED array at height h,
 sec. 4); a point x saw light from direction i when the ray from x along i
 meets that plane near a light position. The footprint of the lights is
-rasterised once per capture as a distance map; coverage is 1 within 0.75
+rasterised once per capture as a distance map (directional lights: on the
+plane z = 1 seen from the origin, :func:`facetsynth.lightplane.light_plane`); coverage is 1 within 0.75
 light spacings of a light (every point inside the array), falling to 0 at
 1.25 spacings. Captures whose lights are not near one plane are measured at
 the lights' median height: an approximation, stated in the stage's log.
@@ -18,6 +19,8 @@ import numpy as np
 from scipy.ndimage import distance_transform_edt
 from scipy.spatial import cKDTree
 
+from .lightplane import light_plane, seen_from
+
 
 @dataclass(frozen=True)
 class LightFootprint:
@@ -26,9 +29,12 @@ class LightFootprint:
     pitch: float           # raster cell size, metres
     height: float          # plane of the lights, z
     spacing: float         # median nearest-neighbour distance between lights
+    at_infinity: bool = False
 
     @classmethod
-    def from_lights(cls, positions: np.ndarray) -> "LightFootprint":
+    def from_lights(cls, lights: np.ndarray) -> "LightFootprint":
+        """From the lights (F, 4) homogeneous, or positions (F, 3)."""
+        positions, at_infinity = light_plane(lights)
         xy = positions[:, :2]
         spacing = float(np.median(cKDTree(xy).query(xy, k=2)[0][:, 1])) if len(xy) > 1 else 0.01
         spacing = max(spacing, 1e-4)
@@ -38,12 +44,13 @@ class LightFootprint:
         lit = np.ones((shape[1], shape[0]), bool)
         cols, rows = np.round((xy - origin) / pitch).astype(int).T
         lit[rows, cols] = False
-        return cls(distance_transform_edt(lit) * pitch, origin, pitch, float(np.median(positions[:, 2])), spacing)
+        return cls(distance_transform_edt(lit) * pitch, origin, pitch, float(np.median(positions[:, 2])), spacing,
+                   at_infinity)
 
     def coverage(self, points: np.ndarray, directions: np.ndarray) -> np.ndarray:
         """Coverage in [0, 1] of directions (N, 3) seen from points (P, 3): (P, N)."""
         return _coverage(self.distance, self.origin, self.pitch, self.height, self.spacing,
-                         np.asarray(points, float), np.asarray(directions, float))
+                         seen_from(points, self.at_infinity), np.asarray(directions, float))
 
     def on_grid(self, points: np.ndarray, grid) -> np.ndarray:
         """Coverage of the directions of a :class:`facetsynth.grid.DirectionGrid` seen from points (P, 3):

@@ -454,8 +454,13 @@ def write_capture(manifest: str | Path, out: str | Path, sample: str,
     frames = [read_rgb(m["frames"][q]["exposures"][0]["file"]) for q in picks]
     titles = []
     for q in picks:
-        x, y, z = (1000.0 * v for v in m["frames"][q]["light"]["position"])
-        titles.append(f"frame {q}: light ({x:.0f}, {y:.0f}, {z:.0f}) mm")
+        light = m["frames"][q]["light"]
+        if "direction" in light:
+            x, y, z = light["direction"]
+            titles.append(f"frame {q}: light towards ({x:.2f}, {y:.2f}, {z:.2f})")
+        else:
+            x, y, z = (1000.0 * v for v in light["position"])
+            titles.append(f"frame {q}: light ({x:.0f}, {y:.0f}, {z:.0f}) mm")
     save_png(capture_mosaic(frames, titles, suptitle=f"{sample}: HDR frames ({len(picks)} of "
                                                     f"{len(m['frames'])}, one display scale)"), out)
 

@@ -5,8 +5,9 @@ level), so the merge is an inverse-variance weighted mean of the per-exposure
 estimates v_e / t_e over the exposures that are neither saturated nor at the
 noise floor (Debevec and Malik 1997 with a linear response; the weights follow
 the sensor noise model var(v) = read_sigma^2 + shot_gain v). 8-bit exposures are linearized first with
-the camera response recovered from the brackets (:mod:`facetsynth.response`), which also gives their
-sensor model (clipping at code 255, quantisation noise).
+the camera response recovered from the brackets (:mod:`facetsynth.response`), or with the transfer
+function the manifest declares (:mod:`facetsynth.transfer`), which also gives their sensor model
+(clipping at code 255, quantisation noise).
 """
 
 from __future__ import annotations

@@ -18,6 +18,12 @@ relative to the LEDs. That made two points of one material get different
 partial NDFs, in stripes with the LED pitch (docs/decisions.md,
 "Sampling-invariant partial NDFs"). Beyond the lights' convex hull the
 caller fills the table by push-pull from the interpolated cells.
+
+Directional lights (a light dome's, at infinity) have one direction d_q for
+every point: their plane is the plane z = 1 seen from the origin, each light
+at its gnomonic projection d_q / d_qz, and every point queries it from the
+origin (:func:`light_plane`). Great circles are straight lines there, so the
+triangulation interpolates between neighbouring directions as on the sphere.
 """
 
 from __future__ import annotations
@@ -31,16 +37,37 @@ from scipy.spatial import Delaunay, QhullError
 UP = 1e-3   # directions with i_z at or below this never reach the plane of the lights
 
 
+def light_plane(lights: np.ndarray) -> tuple[np.ndarray, bool]:
+    """The lights (F, 4) homogeneous (:mod:`facetsynth.render`) or (F, 3) positions as positions (F, 3) in
+    their plane, and whether they are at infinity (directional: d / d_z on the plane z = 1, seen from the
+    origin by every point). A capture's lights are all point lights or all directional (ValueError)."""
+    lights = np.asarray(lights, float)
+    if lights.shape[-1] == 3 or np.all(lights[:, 3] > 0):
+        return lights[:, :3], False
+    if np.any(lights[:, 3] > 0):
+        raise ValueError("the capture mixes point lights and directional lights: they need two planes of lights")
+    d = lights[:, :3]
+    return d / d[:, 2:3], True
+
+
+def seen_from(points: np.ndarray, at_infinity: bool) -> np.ndarray:
+    """Where each point (..., 3) sees the plane of the lights from: itself, or the origin for lights at infinity."""
+    points = np.asarray(points, float)
+    return np.zeros_like(points) if at_infinity else points
+
+
 @dataclass(frozen=True)
 class LightTriangulation:
     """A Delaunay triangulation of the lights' (x, y) in their plane z = ``height`` (the median light z)."""
 
     triangulation: Delaunay
     height: float
+    at_infinity: bool = False
 
     @classmethod
-    def from_lights(cls, positions: np.ndarray) -> "LightTriangulation":
-        positions = np.asarray(positions, float)
+    def from_lights(cls, lights: np.ndarray) -> "LightTriangulation":
+        """From the lights (F, 4) homogeneous, or positions (F, 3) (:func:`light_plane`)."""
+        positions, at_infinity = light_plane(lights)
         xy = positions[:, :2]
         problem = (f"the {len(positions)} light(s) do not span an area of their plane (at least 3 lights, not all "
                    "on one line, are needed)")
@@ -53,12 +80,13 @@ class LightTriangulation:
         # scipy computes the barycentric transforms on first use and find_simplex reads them without the GIL:
         # computed here, once, so that threads sharing the triangulation never replace them under each other
         triangulation.transform
-        return cls(triangulation, float(np.median(positions[:, 2])))
+        return cls(triangulation, float(np.median(positions[:, 2])), at_infinity)
 
     def hits(self, points: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """X(x, i) (P, N, 2) in the lights' plane for points (P, 3) and directions (N, 3), and whether the
         direction reaches the plane at all (i_z > UP) (N,)."""
         up = directions[:, 2] > UP
+        points = seen_from(points, self.at_infinity)
         t = (self.height - points[:, None, 2]) / np.where(up, directions[:, 2], 1.0)[None]
         return points[:, None, :2] + t[..., None] * directions[None, :, :2], up
 

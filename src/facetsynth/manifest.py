@@ -39,8 +39,9 @@ def validate(manifest: Any, path: str | Path | None = None) -> None:
     every number is finite; ``camera/K`` is [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0;
     ``camera/R`` is a rotation (every entry of R R^T - I within :data:`ROTATION_TOLERANCE`, det R = +1);
     the camera is in front of the sample (its centre C = -R^T t has z > 0, and the sample's centre,
-    the origin, is in front of it: t_z > 0) and the origin projects inside the image (the whole sample
-    need not: a close-up is legitimate); every light is strictly above the sample plane (z > 0) and its
+    the origin, is in front of it: t_z > 0; an orthographic camera looks down: r3_z < 0) and the origin
+    projects inside the image (the whole sample need not: a close-up is legitimate); every light (its
+    position, or a directional light's direction) is strictly above the sample plane (z > 0) and its
     intensity is not all zero. ``saturation`` is required: a number > 0, or null for data that were
     never clipped. A missing required key names any close match among the keys beside it.
     """
@@ -117,10 +118,14 @@ def _check_camera(cam: dict[str, Any], path: str | Path | None) -> None:
                                          f"{ROTATION_TOLERANCE:g}; det R = {det:.3g}, must be +1)")
     t = np.asarray(cam["t"], dtype=float)
     centre = -R.T @ t
-    if not centre[2] > 0:
+    if cam.get("projection") == "orthographic":
+        if not R[2, 2] < 0:
+            raise _invalid(path, "camera/R", f"the orthographic camera looks along {_xyz(R[2])}, not down at the "
+                                             "sample (its third row r3 needs z < 0)")
+    elif not centre[2] > 0:
         raise _invalid(path, "camera/t", f"the camera centre C = -R^T t = {_xyz(centre)} is not above the "
                                          "sample plane (z = 0, normal +z): it needs z > 0")
-    if not t[2] > 0:
+    elif not t[2] > 0:
         raise _invalid(path, "camera/t", f"the camera looks away from the sample: the sample's centre lies "
                                          f"at depth t_z = {t[2]:.4g} m (needs > 0)")
     col, row = _camera(cam).project(np.zeros(3))
@@ -130,11 +135,14 @@ def _check_camera(cam: dict[str, Any], path: str | Path | None) -> None:
 
 
 def _check_light(light: dict[str, Any], where: str, path: str | Path | None) -> None:
-    """A light strictly above the sample plane, with some intensity."""
-    z = light["position"][2]
-    if not z > 0:
-        raise _invalid(path, f"{where}/position/2", f"light at z = {z:.4g} m is not above the sample plane "
-                                                   "(z = 0, normal +z): it needs z > 0")
+    """A light strictly above the sample plane (a directional one: from above it), with some intensity."""
+    if "direction" in light:
+        if not light["direction"][2] > 0:
+            raise _invalid(path, f"{where}/direction/2", f"a directional light towards {_xyz(light['direction'])} "
+                                                        "is not above the sample plane: it needs z > 0")
+    elif not light["position"][2] > 0:
+        raise _invalid(path, f"{where}/position/2", f"light at z = {light['position'][2]:.4g} m is not above the "
+                                                   "sample plane (z = 0, normal +z): it needs z > 0")
     if not any(light["intensity"]):
         raise _invalid(path, f"{where}/intensity", "every channel is zero (a light must emit)")
 
@@ -147,14 +155,15 @@ def _xyz(v: np.ndarray) -> str:
 def load(path: str | Path, check_files: bool = True) -> dict[str, Any]:
     """Read and validate a manifest; resolve every frame path to an absolute one.
 
-    ``path`` is the manifest file or the capture folder holding ``manifest.json``.
-    With ``check_files`` every exposure file must exist (InputError names the
+    ``path`` is the manifest file, the capture folder holding ``manifest.json``, or a light dome's ``.lp``
+    file (:mod:`facetsynth.rti.lp`: directional lights, an orthographic camera, stated defaults). With
+    ``check_files`` every exposure file must exist (InputError names the
     first missing one). The returned dict carries ``_dir`` (the capture folder).
     """
     path = Path(path)
     if path.is_dir():
         path = path / "manifest.json"
-    manifest = read_json(path)
+    manifest = _read_lp(path) if path.suffix.lower() == ".lp" else read_json(path)
     validate(manifest, path)
     folder = path.parent.resolve()
     for q, frame in enumerate(manifest["frames"]):
@@ -169,6 +178,18 @@ def load(path: str | Path, check_files: bool = True) -> dict[str, Any]:
         manifest["truth"]["scene"] = _resolve(folder, manifest["truth"]["scene"], "truth/scene", path)
     manifest["_dir"] = str(folder)
     return manifest
+
+
+def _read_lp(path: Path) -> dict[str, Any]:
+    """The manifest of an ``.lp`` light file, its camera the size of its first photo."""
+    from .fileio import _oiio_spec
+    from .rti import lp
+    files, _ = lp.read(path)
+    first = _resolve(path.parent.resolve(), files[0], "frames/0/exposures/0/file", path)
+    if not Path(first).is_file():
+        raise InputError(first, f"photo listed on line 2 of {path} is missing")
+    spec = _oiio_spec(Path(first))
+    return lp.manifest(path, (spec.width, spec.height))
 
 
 def _resolve(folder: Path, name: str, where: str, path: Path) -> str:
@@ -199,17 +220,27 @@ def _camera(cam: dict[str, Any]) -> Camera:
     """The camera of a manifest's ``camera`` entry."""
     return Camera(width=cam["width"], height=cam["height"], K=np.asarray(cam["K"], float),
                   R=np.asarray(cam["R"], float), t=np.asarray(cam["t"], float),
-                  distortion=np.asarray(cam.get("distortion", [0.0] * 5), float))
+                  distortion=np.asarray(cam.get("distortion", [0.0] * 5), float),
+                  projection=cam.get("projection", "perspective"))
 
 
-def light_positions(manifest: dict[str, Any]) -> np.ndarray:
-    """(F, 3) light positions P_q in metres, world frame."""
-    return np.array([f["light"]["position"] for f in manifest["frames"]], dtype=float)
+def light_point(light: dict[str, Any]) -> np.ndarray:
+    """A manifest light as a homogeneous point (4,) (:mod:`facetsynth.render`): (P, 1) for a point light,
+    (d / |d|, 0) for a directional one."""
+    if "direction" in light:
+        d = np.asarray(light["direction"], float)
+        return np.append(d / np.linalg.norm(d), 0.0)
+    return np.append(np.asarray(light["position"], float), 1.0)
 
 
-def light_intensities(manifest: dict[str, Any]) -> np.ndarray:
-    """(F, 3) RGB light intensities L_q."""
-    return np.array([f["light"]["intensity"] for f in manifest["frames"]], dtype=float)
+def lights(frames: list[dict[str, Any]]) -> np.ndarray:
+    """(F, 4) homogeneous lights of a manifest's (or a geometry file's) ``frames``."""
+    return np.array([light_point(f["light"]) for f in frames]).reshape(-1, 4)
+
+
+def light_intensities(frames: list[dict[str, Any]]) -> np.ndarray:
+    """(F, 3) RGB light intensities L_q of a manifest's ``frames`` (W/sr; a directional light's: W/m^2)."""
+    return np.array([f["light"]["intensity"] for f in frames], dtype=float).reshape(-1, 3)
 
 
 def has_truth(manifest: dict[str, Any]) -> bool:

@@ -247,8 +247,8 @@ def _eq11_update(d: np.ndarray, numerator: np.ndarray, rows: np.ndarray, s_table
     return change
 
 
-def pooled_fit(specular: np.ndarray, valid: np.ndarray, points: np.ndarray, views: np.ndarray,
-               lights: np.ndarray, member_confidence: np.ndarray, view: np.ndarray, grid: DirectionGrid,
+def pooled_fit(specular: np.ndarray, valid: np.ndarray, light_directions: np.ndarray, views: np.ndarray,
+               member_confidence: np.ndarray, view: np.ndarray, grid: DirectionGrid,
                constrained: bool = True, grazing_deg: float = 80.0, tol: float = 1e-3,
                max_iter: int = 30, rotation: np.ndarray | None = None) -> PartialNDF:
     """One partial NDF from the eq. 8 samples of several points of one material (a cluster's members).
@@ -263,7 +263,7 @@ def pooled_fit(specular: np.ndarray, valid: np.ndarray, points: np.ndarray, view
     cells no sample falls in) and eqs.
     11 and 5 are iterated for the representative's view ``view`` (S is smooth
     in h; the members' views differ by a few degrees). ``specular`` (M, F)
-    rho~_s, ``valid`` (M, F), ``points``/``views`` (M, 3), ``lights`` (F, 3),
+    rho~_s, ``valid`` (M, F), ``light_directions`` i (M, F, 3), ``views`` (M, 3),
     ``member_confidence`` (M, T, F): the members' W, whose mean is the pooled W.
     ``rotation`` (M,): each member's frame against the representative's
     (:func:`facetsynth.cluster.relative_rotation`, D_x(h) = D(R(phi) h)):
@@ -271,9 +271,7 @@ def pooled_fit(specular: np.ndarray, valid: np.ndarray, points: np.ndarray, view
     Returns a PartialNDF of one point.
     """
     from .pushpull import push_pull
-    from .render import light_geometry
-
-    wi, _ = light_geometry(points[:, None, :], lights[None])                   # (M, F, 3)
+    wi = np.asarray(light_directions, float)
     o = np.broadcast_to(views[:, None, :], wi.shape)
     h = wi + o
     h = h / np.maximum(np.linalg.norm(h, axis=-1, keepdims=True), 1e-12)

@@ -25,7 +25,8 @@ from . import manifest as manifest_io
 from .errors import InputError
 from .fileio import write_exr
 from .outputs import made_by, prepare_output_dir
-from .render import light_geometry, unit
+from .normals import to_local
+from .render import light_geometry, towards
 from .svbrdf import CHUNK, SVBRDF
 
 log = logging.getLogger(__name__)
@@ -45,7 +46,11 @@ class FrameRenderer:
         self.mask = inside & in_front
         self.points = points[self.mask]
         self.index = index[self.mask]
-        self.wo = unit(camera.centre - self.points)
+        self.wo = towards(self.points, camera.view_point)
+        # shading normals (SVBRDF models that have them): directions in each point's frame, n(x) . i as the cosine
+        self.frames = model.frames(self.index) if getattr(model, "normal", None) is not None else None
+        if self.frames is not None:
+            self.wo = to_local(self.frames, self.wo)
         # the camera is fixed: eq. 5's A(x, o) is computed once per pixel (SVBRDF models)
         self.area_o = model.area_at(self.index, self.wo) if hasattr(model, "area_at") else None
 
@@ -56,10 +61,13 @@ class FrameRenderer:
         m = self.mask.reshape(self.camera.height, s, self.camera.width, s)
         return m.all(axis=(1, 3))
 
-    def radiance(self, light_position, light_intensity, diffuse_only: bool = False) -> np.ndarray:
-        """(H, W, 3) float32 radiance I of the frame, box-filtered over sub-pixels; ``diffuse_only``: the
-        model's diffuse term kd/pi (n.i) L / r^2 alone."""
-        wi, r2 = light_geometry(self.points, np.asarray(light_position, float))
+    def radiance(self, light, light_intensity, diffuse_only: bool = False) -> np.ndarray:
+        """(H, W, 3) float32 radiance I of the frame under a homogeneous light (4,) or a point light's position
+        (3,), box-filtered over sub-pixels; ``diffuse_only``: the model's diffuse term kd/pi (n.i) L / r^2
+        alone."""
+        wi, r2 = light_geometry(self.points, light)
+        if self.frames is not None:
+            wi = to_local(self.frames, wi)
         value = np.zeros((len(self.index), 3))
         for a in range(0, len(self.index), CHUNK):
             sl = slice(a, a + CHUNK)
@@ -153,7 +161,7 @@ def predict(model_dir: str | Path, manifest_path: str | Path, out_dir: str | Pat
     out_frames = []
     for q in tqdm(selected, desc="predict", unit="frame", disable=not progress):
         light = m["frames"][q]["light"]
-        image = _finite_frame(renderer.radiance(light["position"], light["intensity"]), q, manifest_path,
+        image = _finite_frame(renderer.radiance(manifest_io.light_point(light), light["intensity"]), q, manifest_path,
                               model_dir)
         name = f"frames/{q:04d}.exr"
         write_exr(out_dir / name, {"RGB": image}, {"exposure_time": 1.0, "quantity": "predicted radiance I",

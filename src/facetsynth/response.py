@@ -28,6 +28,10 @@ The linearized values are merged by :func:`facetsynth.hdr.merge_exposures` with 
 :meth:`Response.sensor_model`: code 255 is clipped, code 0 is the noise floor, and the noise is the 8-bit
 quantisation's, var = step(v)^2 / 12 with ``step`` the linearized width of one code (fitted as
 read_sigma^2 + shot_gain v).
+
+A manifest may instead declare the transfer function (:mod:`facetsynth.transfer`: sRGB, linear, gamma)
+and a black level: :meth:`Response.from_transfer` then stands in for the recovered curve (no bracket
+needed), with the same scale (code 255 decodes to 1) and the same sensor model.
 """
 
 from __future__ import annotations
@@ -39,8 +43,13 @@ import numpy as np
 
 from .errors import InputError
 from .hdr import SensorModel
+from .transfer import Transfer, table as transfer_table
 
 LEVELS = 256
+
+TRANSFER_HINT = ('or, without a bracket, declare "transfer": "srgb" in the manifest for sRGB photos (JPEG) '
+                 '("linear" or {"gamma": G} for other codings; one exposure per frame is then enough)')
+"""How to do without a bracket, for the errors of :func:`recover_response`."""
 
 
 @dataclass(frozen=True)
@@ -59,10 +68,19 @@ class ResponseSettings:
 @dataclass(frozen=True)
 class Response:
     """An 8-bit camera's inverse response: ``linear[z, c]`` is the exposure value ``t I`` of code ``z`` in
-    channel ``c`` (non-decreasing; 0 at code 0, 1 at code 255)."""
+    channel ``c`` (non-decreasing; 0 at code 0 -- and at the codes at or below a declared black level --,
+    1 at code 255)."""
 
     linear: np.ndarray                    # (256, 3) float64
-    scale_from: tuple[str, ...] = ()      # per channel: "clipping" or "power law" (module docstring)
+    scale_from: tuple[str, ...] = ()      # per channel: "clipping", "power law" (module docstring) or "transfer"
+
+    @classmethod
+    def from_transfer(cls, transfer: Transfer, black_level: float = 0.0) -> "Response":
+        """The response of a declared transfer function and black level (:func:`facetsynth.transfer.table`:
+        ``max(0, L - b) / (1 - b)``, so code 255 is 1 and the codes at or below the black level are 0), the
+        same in every channel."""
+        lut = transfer_table(transfer, black_level)
+        return cls(np.repeat(lut[:, None], 3, axis=1), ("transfer",) * 3)
 
     def linearize(self, codes: np.ndarray) -> np.ndarray:
         """Exposure values (float32) of 8-bit ``codes`` (..., 3): ``f^-1`` looked up per channel."""
@@ -72,12 +90,14 @@ class Response:
 
     def sensor_model(self, floor_sigmas: float = 3.0) -> SensorModel:
         """The 8-bit merge's sensor model: saturation 1 with a margin that puts the clip level halfway
-        between code 254 and 255 (only 255 is clipped); read_sigma the quantisation noise of code 1, so that
-        with the default ``floor_sigmas`` 3 (< sqrt 12) only code 0 is at the noise floor; shot_gain the
+        between code 254 and 255 (only 255 is clipped); read_sigma the quantisation noise of the lowest code
+        above 0 (code 1, or the first code above a declared black level), so that with the default
+        ``floor_sigmas`` 3 (< sqrt 12) only the codes at 0 are at the noise floor; shot_gain the
         least-squares slope of the quantisation variance step(v)^2 / 12 - read_sigma^2 against v."""
         lin = self.linear
         margin = float(np.min(1.0 - lin[254])) / 2.0
-        read_sigma = float(np.min(lin[1])) / np.sqrt(12.0)
+        positive = np.where(lin > 0, lin, np.inf).min(axis=0)     # per channel: its lowest value above 0
+        read_sigma = float(np.min(np.where(np.isfinite(positive), positive, 0.0))) / np.sqrt(12.0)
         step = np.diff(lin, axis=0)                               # (255, 3): code z -> z + 1
         v = lin[1:255]
         q = ((step[:-1] + step[1:]) / 2.0) ** 2 / 12.0            # variance at codes 1..254
@@ -89,8 +109,10 @@ class Response:
 
     def to_json(self) -> dict:
         """The curve for metrics: ``linear`` (256 x 3 exposure values of codes 0..255) and how it was scaled."""
+        declared = set(self.scale_from) == {"transfer"}
         return {"linear": np.round(self.linear, 8).tolist(),
-                "scale": "exposure value 1 = where code 255 starts (clipping), in each channel",
+                "scale": ("exposure value 1 = code 255 (declared transfer)" if declared else
+                          "exposure value 1 = where code 255 starts (clipping), in each channel"),
                 "scale_from": list(self.scale_from)}
 
 
@@ -136,7 +158,7 @@ def recover_response(stacks: Sequence[np.ndarray], times: Sequence[float],
     if distinct.size < 2:
         raise InputError(source, f"{where}{times.size} exposure(s) at {distinct.size} distinct time(s): the camera "
                                  "response of 8-bit files needs a bracket of at least 2 (better 3 or more, a stop or "
-                                 "more apart)")
+                                 f"more apart); {TRANSFER_HINT}")
     side = max(int(np.ceil(np.sqrt(settings.samples))), 2)
     series = pooled_series(stacks)
     picked = sample_pixels(series, side * side)                          # (E, P, 3)
@@ -145,7 +167,7 @@ def recover_response(stacks: Sequence[np.ndarray], times: Sequence[float],
         raise InputError(source, f"{where}the {times.size} exposures ({', '.join(f'{t:g}' for t in times)} s) "
                                  f"cover {covered:.0%} of the 8-bit codes in unclipped pixels (need "
                                  f"{settings.min_coverage:.0%}): too short a bracket, or a too uniform scene, to "
-                                 "recover the camera response")
+                                 f"recover the camera response; {TRANSFER_HINT}")
     images = [np.ascontiguousarray(picked[e].reshape(side, side, 3)) for e in range(times.size)]
     calibrate = cv2.createCalibrateDebevec(samples=side * side, lambda_=float(settings.smoothness), random=False)
     curve = calibrate.process(images, times.astype(np.float32)).reshape(LEVELS, 3).astype(np.float64)

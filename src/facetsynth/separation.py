@@ -7,16 +7,17 @@ import numpy as np
 from .render import light_geometry
 
 
-def brdf_samples(radiance: np.ndarray, points: np.ndarray, light_positions: np.ndarray,
+def brdf_samples(radiance: np.ndarray, points: np.ndarray, lights: np.ndarray,
                  light_intensities: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Eq. 8: rho(x, i_q(x), o) = I_q(x) / ((n . i_q(x)) L_q |P_q - x|^2).
+    """Eq. 8: rho(x, i_q(x), o) = I_q(x) |P_q - x|^2 / ((n . i_q(x)) L_q).
 
-    ``radiance`` (P, Q, 3) at points (P, 3) under lights (Q, 3) of intensity
+    ``radiance`` (P, Q, 3) at points (P, 3) under homogeneous lights (Q, 4) (or positions (Q, 3);
+    :func:`facetsynth.render.light_geometry`: |P_q - x|^2 is 1 for a directional light) of intensity
     (Q, 3). Each point has its own light direction i_q(x) = (P_q - x)/|P_q - x|.
     Returns (rho (P, Q, 3), light directions (P, Q, 3)). Where n . i <= 0 (a
     light at or below the sample plane) rho is 0.
     """
-    wi, r2 = light_geometry(points[:, None, :], light_positions[None, :, :])
+    wi, r2 = light_geometry(points[:, None, :], np.asarray(lights, float)[None])
     cos_i = wi[..., 2]
     scale = np.divide(r2, cos_i, out=np.zeros_like(r2), where=cos_i > 1e-6)
     irradiance_free = np.divide(radiance, light_intensities[None], out=np.zeros(radiance.shape),

@@ -26,11 +26,33 @@ Folder layout (``model.json`` describes it):
     representatives.npy   (R,) int64 point index of each representative
     neighbours.npy        (P, K) int32 indices into the representatives
     weights.npy           (P, K) float32 mixture weights (padding has weight 0)
+    rotation.npy          (optional) (P,) float32 eq. 13's per-point turn of the NDF about the normal, radians
+    normal.exr            (optional) channels ``X``, ``Y``, ``Z``: the per-point unit shading normal n(x)
+                          (mesostructure, :mod:`facetsynth.normals`) in the plane's frame (x, y along the
+                          plane grid's axes, z up), n_z > 0; read when model.json's ``files`` lists it
+                          (``"normal": "normal.exr"``). Folders without it load with ``normal = None``: flat,
+                          n = +z everywhere.
     model.json            version, units, plane grid, direction grids, eta range and default, provenance
 
 Points are sample-plane positions in metres (z = 0); a point maps to the
 rectified cell containing it (PlaneGrid, the one place that maps (row, col)
 to (x, y)); points off the sample get rho = 0.
+
+Frames. Eq. 6 above is written in the point's SHADING FRAME (local: n = +z). With per-point shading
+normals (``normal``), the frame of point x is the rotation R(x) = :meth:`SVBRDF.frames` with
+R(x) n(x) = +z (:func:`facetsynth.normals.shading_frames`, the smallest rotation; the identity where
+``normal`` is None or n = +z), and
+
+* :meth:`SVBRDF.eval_index`, :meth:`~SVBRDF.specular_terms`, :meth:`~SVBRDF.ndf_at`, :meth:`~SVBRDF.area_at`
+  and :meth:`~SVBRDF.mixture` take directions IN THE POINT'S SHADING FRAME (local: i_local = R(x) i_world,
+  :func:`facetsynth.normals.to_local`); their horizon is the shading one (local z <= 0 gives 0);
+* :meth:`SVBRDF.eval` ``(points, wi, wo)`` takes WORLD directions (the plane's frame) and converts them with
+  the frames first: rho(x, R(x) i, R(x) o), and 0 also where i or o is at or below the sample plane
+  (world z <= 0: nothing reaches the sample from below it, whatever the normal).
+
+rho never includes the foreshortening: a pixel is rho (n(x) . i) L / |P - x|^2, n(x) . i being the local
+z of i (the plane's z for a flat model). With ``normal`` None nothing is rotated: every method gives, bit
+for bit, what it gave before shading normals existed.
 """
 
 from __future__ import annotations
@@ -45,11 +67,30 @@ from .errors import InputError
 from .fileio import read_exr, read_json, read_npy, write_exr, write_json, write_npy
 from .grid import DirectionGrid, turn
 from .microfacet import fresnel, half_vector
+from .normals import shading_frames, to_local
 from .partial_ndf import SHADOWING_GRID
 from .plane import PlaneGrid
 
 FORMAT_VERSION = 1
 CHUNK = 1 << 16   # directions evaluated per block: bounds eval's memory
+NORMAL_FILE = "normal.exr"
+NORMAL_UNIT_TOL = 1e-3   # |n| - 1 accepted on load (then renormalised)
+
+
+def normal_problem(normal: np.ndarray, tol: float = NORMAL_UNIT_TOL) -> str | None:
+    """Why ``normal`` (P, 3) is not a field of unit shading normals facing up (None when it is): finite,
+    | |n| - 1 | <= ``tol``, n_z > 0. The message names the first bad point (flat index)."""
+    n = np.asarray(normal, float)
+    checks = (("not finite", ~np.isfinite(n).all(axis=-1)),
+              (f"not a unit vector (| |n| - 1 | > {tol:g})",
+               ~(np.abs(np.linalg.norm(np.nan_to_num(n), axis=-1) - 1.0) <= tol)),
+              ("not facing up (n_z <= 0)", ~(np.nan_to_num(n[..., 2]) > 0.0)))
+    for what, bad in checks:
+        if bad.any():
+            first = int(np.flatnonzero(bad)[0])
+            return (f"{int(bad.sum())} shading normal(s) {what}; first at point {first}: "
+                    f"{np.array2string(n[first], precision=4, separator=', ')}")
+    return None
 
 
 def _bilinear(grid: DirectionGrid, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -95,6 +136,7 @@ class SVBRDF:
     eta_lo: np.ndarray | None = None         # (P,) 95 % interval of eta (the point's material), if known
     eta_hi: np.ndarray | None = None
     rotation: np.ndarray | None = None       # (P,) radians: D(x, h) = sum_k w_k D_k(R(phi_x) h) (eq. 13's turn)
+    normal: np.ndarray | None = None         # (P, 3) unit shading normals n(x) in the plane's frame; None: flat
 
     def __post_init__(self):
         p = self.plane.rows * self.plane.cols
@@ -102,6 +144,14 @@ class SVBRDF:
                             ("rotation", (p,))):
             if getattr(self, name) is not None and getattr(self, name).shape != shape:
                 raise ValueError(f"SVBRDF {name} has shape {getattr(self, name).shape}, expected {shape}")
+        if self.normal is not None:
+            self.normal = np.asarray(self.normal, float)
+            if self.normal.shape != (p, 3):
+                raise ValueError(f"SVBRDF normal has shape {self.normal.shape}, expected {(p, 3)}")
+            problem = normal_problem(self.normal)
+            if problem:
+                raise ValueError(f"SVBRDF normal: {problem}")
+            self.normal = self.normal / np.linalg.norm(self.normal, axis=-1, keepdims=True)
         if self.neighbours.shape != self.weights.shape or self.neighbours.shape[0] != p:
             raise ValueError(f"SVBRDF neighbours {self.neighbours.shape} / weights {self.weights.shape}: "
                              f"expected (P={p}, K) each")
@@ -142,6 +192,14 @@ class SVBRDF:
         eta_channels, _ = read_exr(path / "eta.exr")
         fitted = eta_channels.get("eta_fitted")
         interval = {k: image("eta.exr", k) if k in eta_channels else None for k in ("eta_lo", "eta_hi")}
+        normal = None
+        files = meta.get("files") if isinstance(meta.get("files"), dict) else {}
+        if "normal" in files:                       # model.json lists it: a stale file beside it is not read
+            name = str(files["normal"])
+            normal = np.stack([image(name, c) for c in "XYZ"], -1)
+            problem = normal_problem(normal)
+            if problem:
+                raise InputError(path / name, problem)
         try:
             return cls(plane=plane, grid=grid, kd=image("kd.exr", "RGB"), ks=image("ks.exr", "RGB"),
                        eta=image("eta.exr", "eta"), ndf=tensor("ndf.npy"), area=tensor("projected_area.npy"),
@@ -150,7 +208,7 @@ class SVBRDF:
                        eta_fitted=None if fitted is None else fitted.reshape(-1) > 0.5,
                        shadowing_grid=sgrid, info=meta, eta_lo=interval["eta_lo"], eta_hi=interval["eta_hi"],
                        rotation=(tensor("rotation.npy").astype(np.float64) if (path / "rotation.npy").is_file()
-                                 else None))
+                                 else None), normal=normal)
         except ValueError as exc:
             raise InputError(path, f"inconsistent SVBRDF folder ({exc})") from None
 
@@ -176,13 +234,17 @@ class SVBRDF:
         write_npy(path / "weights.npy", self.weights.astype(np.float32))
         if self.rotation is not None:
             write_npy(path / "rotation.npy", self.rotation.astype(np.float32))
+        if self.normal is not None:
+            write_exr(path / NORMAL_FILE, {c: self.normal[:, k].reshape(rc) for k, c in enumerate("XYZ")},
+                      dict(header, quantity="unit shading normal (x, y, z) in the sample plane's frame, z up"))
         meta = {"version": FORMAT_VERSION, "units": "m", "model": "paper 002 eq. 6 with eq. 18 NDF mixtures",
                 "plane_grid": self.plane.to_dict(), "grid": self.grid.to_dict(),
                 "shadowing_grid": self.shadowing_grid.to_dict(),
                 "files": {"kd": "kd.exr", "ks": "ks.exr", "eta": "eta.exr", "ndf": "ndf.npy",
                           "projected_area": "projected_area.npy", "representatives": "representatives.npy",
                           "neighbours": "neighbours.npy", "weights": "weights.npy",
-                          **({"rotation": "rotation.npy"} if self.rotation is not None else {})},
+                          **({"rotation": "rotation.npy"} if self.rotation is not None else {}),
+                          **({"normal": NORMAL_FILE} if self.normal is not None else {})},
                 "loader": "facetsynth.SVBRDF.load(path).eval(points, wi, wo)"}
         meta.update({k: v for k, v in self.info.items() if k not in meta})
         if provenance:
@@ -205,6 +267,15 @@ class SVBRDF:
         col = np.clip(col, 0, self.plane.cols - 1).astype(np.intp)
         row = np.clip(row, 0, self.plane.rows - 1).astype(np.intp)
         return row * self.plane.cols + col, inside
+
+    def frames(self, index: np.ndarray) -> np.ndarray:
+        """The shading frames (..., 3, 3) of points ``index`` (...): rotations R with R n(x) = +z
+        (:func:`facetsynth.normals.shading_frames`); the identity where ``normal`` is None. Local directions
+        are R d (:func:`facetsynth.normals.to_local`), world ones R^T d_local."""
+        index = np.asarray(index, np.intp)
+        if self.normal is None:
+            return np.broadcast_to(np.eye(3), index.shape + (3, 3)).copy()
+        return shading_frames(self.normal[index])
 
     def mixture(self, table: np.ndarray, grid: DirectionGrid, index: np.ndarray, d: np.ndarray) -> np.ndarray:
         """sum_k w(x, k) table[j(x, k)](R(phi_x) d) for points ``index`` (N,) and directions d (N, 3); ``table``
@@ -268,7 +339,9 @@ class SVBRDF:
 
     def eval_index(self, index: np.ndarray, wi: np.ndarray, wo: np.ndarray,
                    area_o: np.ndarray | None = None) -> np.ndarray:
-        """rho (N, 3) in 1/sr at flat point indices (N,) for unit directions (N, 3)."""
+        """rho (N, 3) in 1/sr at flat point indices (N,) for unit directions (N, 3) in each point's shading
+        frame (local: R(x) d, :meth:`frames`; the plane's frame when ``normal`` is None); 0 below the local
+        horizon. ``area_o``: A(x, o) of the local o when already known."""
         spec, c = self.specular_terms(index, wi, wo, area_o)
         f = fresnel(c, self.eta[index])
         rho = self.kd[index] / np.pi + self.ks[index] * (spec * f)[:, None]
@@ -285,6 +358,10 @@ class SVBRDF:
         (h and c = |i.h| are symmetric in i, o; A(i) A(o) commutes),
         non-negative, never NaN/Inf: 0 below the horizon (i.n <= 0 or
         o.n <= 0) and off the sample; finite at grazing (A(k) > 0 there).
+
+        Directions are WORLD ones (the plane's frame, z up). With shading normals they are turned into
+        each point's frame first (:meth:`frames`), and rho is 0 also where i or o is at or below the
+        sample plane (z <= 0); with ``normal`` None, the plane's frame is every point's.
         """
         points, wi, wo = (np.asarray(a, float) for a in (points, wi, wo))
         index, inside = self.point_index(points)
@@ -299,7 +376,12 @@ class SVBRDF:
         out = np.zeros((index.size, 3))
         for s in range(0, index.size, CHUNK):
             sl = slice(s, s + CHUNK)
-            out[sl] = self.eval_index(index[sl], wi[sl], wo[sl])
+            if self.normal is None:
+                out[sl] = self.eval_index(index[sl], wi[sl], wo[sl])
+                continue
+            frames = self.frames(index[sl])
+            out[sl] = self.eval_index(index[sl], to_local(frames, wi[sl]), to_local(frames, wo[sl]))
+            out[sl][(wi[sl, 2] <= 0.0) | (wo[sl, 2] <= 0.0)] = 0.0
         out[~inside] = 0.0
         return out.reshape(shape + (3,))
 

@@ -341,5 +341,5 @@ def _render_frame(points, maps, on_sample, camera, light, intensity, supersample
     """True radiance image (H, W, 3) of one frame, box-filtered over sub-pixels."""
     s = supersample
     image = np.zeros(on_sample.shape + (3,))
-    image[on_sample] = radiance(points, maps.rho, light, intensity, camera.centre)
+    image[on_sample] = radiance(points, maps.rho, light, intensity, camera.view_point)
     return image.reshape(camera.height, s, camera.width, s, 3).mean(axis=(1, 3)).astype(np.float32)

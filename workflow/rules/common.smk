@@ -135,6 +135,13 @@ def source_files(row):
     every exposure file the manifest lists; a virtual scene: the measured BRDF files its regions name. A
     manifest or scene that cannot be read yields what could be listed: the capture job then names the problem."""
     path = Path(row["path"])
+    if row["source"] == "lp":
+        try:
+            from facetsynth.rti import lp
+            listed = [path.parent / name for name in lp.read(path)[0]] + [lp.side_file(path)]
+        except Exception:   # the capture job names the problem
+            listed = []
+        return [str(path)] + [str(f) for f in listed if f.is_file()]
     if row["source"] == "import":
         manifest = path / "manifest.json" if path.is_dir() else path
         try:

@@ -7,7 +7,7 @@
 
 rule params:
     input:
-        geometry="results/{sample}/rectify/geometry.json",
+        geometry="results/{sample}/separate/geometry.json",
         kd="results/{sample}/separate/kd.exr",
         specular="results/{sample}/separate/specular.npy",
         valid="results/{sample}/separate/valid.npy",
@@ -40,7 +40,7 @@ rule params:
 rule refine:
     input:
         model="results/{sample}/params/svbrdf",
-        geometry="results/{sample}/rectify/geometry.json",
+        geometry="results/{sample}/separate/geometry.json",
         specular="results/{sample}/separate/specular.npy",
         valid="results/{sample}/separate/valid.npy",
     output:

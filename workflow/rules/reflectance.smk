@@ -8,6 +8,8 @@ rule separate:
         frames="results/{sample}/rectify/frames",
         geometry="results/{sample}/rectify/geometry.json",
     output:
+        geometry="results/{sample}/separate/geometry.json",   # rectify's, with the shading normals
+        normals="results/{sample}/separate/normals.npy",
         kd="results/{sample}/separate/kd.exr",
         specular="results/{sample}/separate/specular.npy",
         valid="results/{sample}/separate/valid.npy",
@@ -27,7 +29,7 @@ rule separate:
 
 
 RESAMPLE_INPUTS = {
-    "geometry": "results/{sample}/rectify/geometry.json",
+    "geometry": "results/{sample}/separate/geometry.json",
     "specular": "results/{sample}/separate/specular.npy",
     "valid": "results/{sample}/separate/valid.npy",
 }
@@ -100,7 +102,7 @@ else:   # scatter.tiles > 1: one job per part of the points (whole tiles), joine
 
 
 PARTIAL_NDF_INPUTS = {
-    "geometry": "results/{sample}/rectify/geometry.json",
+    "geometry": "results/{sample}/separate/geometry.json",
     "slice": "results/{sample}/resample/slice",
     "grid": "results/{sample}/resample/grid.json",
 }
@@ -148,7 +150,7 @@ else:   # scatter.tiles > 1: one job per part of the points (whole tiles), joine
 
     rule partial_ndf:
         input:
-            geometry="results/{sample}/rectify/geometry.json",
+            geometry="results/{sample}/separate/geometry.json",
             grid="results/{sample}/resample/grid.json",
             ndf=gather.tiles("results/{{sample}}/partial_ndf/parts/{scatteritem}/ndf"),
             records=gather.tiles("results/{{sample}}/partial_ndf/parts/{scatteritem}/record.npz"),

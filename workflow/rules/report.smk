@@ -42,7 +42,7 @@ rule report_capture:
 rule report_maps:
     input:
         svbrdf="results/{sample}/svbrdf",
-        geometry="results/{sample}/rectify/geometry.json",
+        geometry="results/{sample}/separate/geometry.json",
     output:
         kd=report("results/{sample}/report/kd.png", caption="../report/kd.rst", category="{sample}",
                   subcategory="2 SVBRDF maps", labels={"figure": "kd"}),
@@ -68,7 +68,7 @@ rule report_ndf:
         svbrdf="results/{sample}/svbrdf",
         partial="results/{sample}/partial_ndf/ndf",
         grid="results/{sample}/resample/grid.json",
-        geometry="results/{sample}/rectify/geometry.json",
+        geometry="results/{sample}/separate/geometry.json",
     output:
         report("results/{sample}/report/ndf.png", caption="../report/ndf.rst", category="{sample}",
                subcategory="3 NDFs", labels={"figure": "NDFs at a few points"}),
@@ -89,7 +89,7 @@ rule report_clusters:
     input:
         labels="results/{sample}/cluster/labels.npy",
         representatives="results/{sample}/cluster/representatives.npy",
-        geometry="results/{sample}/rectify/geometry.json",
+        geometry="results/{sample}/separate/geometry.json",
     output:
         report("results/{sample}/report/clusters.png", caption="../report/clusters.rst", category="{sample}",
                subcategory="4 clusters", labels={"figure": "cluster map"}),

@@ -6,7 +6,7 @@ rule stencil_fit:
     input:
         svbrdf="results/{sample}/svbrdf",
         labels="results/{sample}/cluster/labels.npy",
-        geometry="results/{sample}/rectify/geometry.json",
+        geometry="results/{sample}/separate/geometry.json",
     output:
         models=directory("results/{sample}/stencil_fit/models"),
         metrics="results/{sample}/stencil_fit/metrics.json",

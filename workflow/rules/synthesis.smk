@@ -5,7 +5,7 @@
 
 rule cluster:
     input:
-        geometry="results/{sample}/rectify/geometry.json",
+        geometry="results/{sample}/separate/geometry.json",
         ndf="results/{sample}/partial_ndf/ndf",
         grid="results/{sample}/resample/grid.json",
         specular="results/{sample}/separate/specular.npy",
@@ -38,14 +38,14 @@ rule cluster:
 def rotation_inputs(wildcards):
     """The geometry and partial NDF tables of the sample's further rotations (sec. 4)."""
     rotations = rotations_of(wildcards.sample)
-    return {"rotation_geometry": [f"results/{r}/rectify/geometry.json" for r in rotations],
+    return {"rotation_geometry": [f"results/{r}/separate/geometry.json" for r in rotations],
             "rotation_ndf": [f"results/{r}/partial_ndf/ndf" for r in rotations]}
 
 
 rule synthesize:
     input:
         unpack(rotation_inputs),
-        geometry="results/{sample}/rectify/geometry.json",
+        geometry="results/{sample}/separate/geometry.json",
         kd="results/{sample}/separate/kd.exr",
         ndf="results/{sample}/partial_ndf/ndf",
         grid="results/{sample}/resample/grid.json",

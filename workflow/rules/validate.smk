@@ -41,7 +41,7 @@ rule heldout_capture:
 
 
 BASELINE_INPUTS = {
-    "geometry": "results/{sample}/rectify/geometry.json",
+    "geometry": "results/{sample}/separate/geometry.json",
     "kd": "results/{sample}/separate/kd.exr",
     "specular": "results/{sample}/separate/specular.npy",
     "valid": "results/{sample}/separate/valid.npy",

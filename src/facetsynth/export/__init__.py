@@ -4,6 +4,9 @@
   samples the fitted SVBRDF itself (tabulated NDFs, eq. 18 weights, eq. 5 shadowing, Fresnel).
 * :mod:`.gltf`: portable. A per-point anisotropic GGX fit written as a glTF 2.0 material with
   ``KHR_materials_anisotropy`` and ``KHR_materials_specular`` textures on a quad.
+
+Shading normals (SVBRDF ``normal``): glTF writes them as the material's ``normalTexture`` (the quad's tangent
+space is the sample plane's frame); the Mitsuba plugin turns each query into the point's frame itself.
 """
 
 from pathlib import Path

@@ -10,6 +10,8 @@ and writes it as textures on a quad whose uv maps to the plane grid:
     metallic_roughness.png       RGB, linear: G roughness, B metallic (0; R unused, 255)
     anisotropy.png               RGB, linear: RG the anisotropy direction (x, y) * 0.5 + 0.5, B the strength
     specular.png                 RGBA: RGB the specular colour / specularColorFactor (sRGB), A the specular weight
+    normal.png                   RGB, linear (only when the model has shading normals): the core spec's
+                                 normalTexture, the tangent-space normal (n + 1) / 2, scale 1
 
 The fit (:func:`fit_material`):
 
@@ -33,6 +35,21 @@ Frames: glTF is y-up; the quad lies in glTF's x-z plane with (X, Y, Z) = (x, z, 
 (a rotation; Blender's importer turns it back into the sample frame, z up). uv (0, 0) is the grid's
 top-left corner (row 0 is the +y edge), u along +x, v along -y; tangent +x (w = +1), so the bitangent
 n x t is +y and an anisotropy angle is the sample-plane azimuth from +x towards +y.
+
+Shading normals: glTF's normalTexture holds the normal in tangent space, "+X right, +Y up, +Z toward the
+viewer", X along the TANGENT attribute, Y along the bitangent cross(NORMAL, TANGENT.xyz) TANGENT.w, and
+"up" is up in the image (towards v = 0: glTF's uv origin is the image's top-left corner). The quad's
+tangent is +x (= +u), its bitangent +y (= -v, the image's up: row 0 is the +y edge), its normal +z, so
+the tangent-space normal IS the model's normal in the plane's frame: RGB = (n_x, n_y, n_z) / 2 + 1/2, no
+swizzle or flip, row r of the image = row r of the plane grid as the other textures. A renderer reads
+n = normalize(2 RGB - 1) (8 bits: about 0.33 deg at most, a half code in each channel; n = +z itself reads
+back 0.32 deg off, 0.5 having no 8-bit code; :func:`round_trip_errors`' ``normal_angle_deg``). The
+BRDF fitted per point is the one of eq. 6 in the point's shading frame (the model's tables are local), so
+the lobes are fitted unchanged and the normal texture turns them as the model's frames do, up to the twist
+about the tilted normal of a renderer's perturbed tangent (usually the tangent made orthogonal to the new
+normal, Gram-Schmidt, where facetsynth.normals turns the frame by the smallest rotation): 0 for normals
+leaning along x or y only, at most about tilt^2 / 4 radians otherwise (0.44 deg at a 10 deg tilt, 4.1 deg
+at 30 deg), an anisotropic lobe's axis only.
 """
 
 from __future__ import annotations
@@ -40,6 +57,7 @@ from __future__ import annotations
 import json
 import logging
 import time
+from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
 from typing import Any
@@ -52,6 +70,7 @@ from ..fileio import atomic_path, read_json
 from ..ggx import (FIT_ALPHA_RANGE, GltfMaterial, _MomentDictionary, dielectric_f0, fit_ggx_ndf,
                    roughness_strength)
 from ..microfacet import fresnel
+from ..normals import shading_frames
 from ..outputs import prepare_output_dir
 from ..plane import PlaneGrid
 
@@ -62,6 +81,8 @@ EXTENSIONS = ("KHR_materials_anisotropy", "KHR_materials_specular", "KHR_materia
 GLTF_NAME, BIN_NAME = "sample.gltf", "sample.bin"
 IMAGES = {"base_color": "base_color.png", "metallic_roughness": "metallic_roughness.png",
           "anisotropy": "anisotropy.png", "specular": "specular.png"}
+NORMAL_IMAGE = "normal.png"       # written when the model has shading normals (the material's normalTexture)
+ALL_IMAGES = dict(IMAGES, normal=NORMAL_IMAGE)
 FIT_CHUNK = 256          # mixtures fitted per batch: bounds the fit's memory (256 x cells x 4 doubles)
 LINEAR, LINEAR_MIPMAP_LINEAR, CLAMP_TO_EDGE = 9729, 9987, 33071
 FLOAT, UNSIGNED_SHORT, ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER = 5126, 5123, 34962, 34963
@@ -69,6 +90,44 @@ FLOAT, UNSIGNED_SHORT, ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER = 5126, 5123, 34962, 3
 
 def _to_byte(x: np.ndarray) -> np.ndarray:
     return np.clip(np.round(np.asarray(x, float) * 255.0), 0, 255).astype(np.uint8)
+
+
+@dataclass
+class NormalMappedMaterial(GltfMaterial):
+    """A :class:`facetsynth.ggx.GltfMaterial` with the per-point shading normals of its normalTexture.
+
+    ``normal`` (P, 3) unit normals in the sample plane's frame (None: flat). As for
+    :class:`facetsynth.svbrdf.SVBRDF`, :meth:`eval_index` takes directions in each point's shading frame
+    and :meth:`frames` gives the rotations R (R n = +z, :func:`facetsynth.normals.shading_frames`) that take
+    world directions there.
+    """
+
+    normal: np.ndarray | None = None
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.normal is not None:
+            n = np.asarray(self.normal, float)
+            if n.shape != (self.n_points, 3):
+                raise ValueError(f"GltfMaterial normal has shape {n.shape}, expected {(self.n_points, 3)}")
+            self.normal = n
+
+    def frames(self, index: np.ndarray) -> np.ndarray:
+        """The shading frames (..., 3, 3) of points ``index``; the identity where ``normal`` is None."""
+        index = np.asarray(index, np.intp)
+        if self.normal is None:
+            return np.broadcast_to(np.eye(3), index.shape + (3, 3)).copy()
+        return shading_frames(self.normal[index])
+
+
+def normal_angles(a: np.ndarray | None, b: np.ndarray | None) -> np.ndarray:
+    """Angles (P,) in degrees between two fields of unit normals (None: +z everywhere)."""
+    flat = np.array([0.0, 0.0, 1.0])
+    a = flat if a is None else np.asarray(a, float)
+    b = flat if b is None else np.asarray(b, float)
+    a, b = np.broadcast_arrays(a, b)
+    cross = np.linalg.norm(np.cross(a, b), axis=-1)
+    return np.degrees(np.arctan2(cross, np.sum(a * b, -1)))
 
 
 # --- the fit ------------------------------------------------------------------------------------------------
@@ -88,9 +147,10 @@ def schlick_f0(k: np.ndarray, eta: np.ndarray, f90: np.ndarray, cos_min: float =
 
 
 def fit_material(model, weight_quantum: float = 0.01, iterations: int = 12,
-                 fresnel_cos_min: float = 0.5) -> tuple[GltfMaterial, dict[str, Any]]:
+                 fresnel_cos_min: float = 0.5) -> tuple[NormalMappedMaterial, dict[str, Any]]:
     """The glTF material nearest the SVBRDF ``model`` per point (module docstring) and a record of the fit
-    (per-point arrays ``alpha_x``, ``alpha_y``, ``scale``, ``ndf_rel_l2`` and summary figures)."""
+    (per-point arrays ``alpha_x``, ``alpha_y``, ``scale``, ``ndf_rel_l2`` and summary figures). The model's
+    shading normals (if any) pass through unchanged: the lobes are fitted in each point's frame."""
     start = time.perf_counter()
     p, r = model.n_points, model.ndf.shape[0]
     quantised = np.zeros((p, r), np.int32)
@@ -129,9 +189,11 @@ def fit_material(model, weight_quantum: float = 0.01, iterations: int = 12,
     f0 = np.minimum(dielectric_f0(ior) * colour, 1.0) * specular[:, None]
     base = np.clip(np.clip(np.asarray(model.kd, float), 0.0, None) / (1.0 - f0.max(axis=-1, keepdims=True)),
                    0.0, 1.0)
-    material = GltfMaterial(plane=model.plane, base_color=base, roughness=roughness, anisotropy_strength=strength,
-                            anisotropy_angle=angle, specular=specular, specular_color=colour, ior=ior,
-                            metallic=np.zeros(p))
+    normal = getattr(model, "normal", None)
+    material = NormalMappedMaterial(plane=model.plane, base_color=base, roughness=roughness,
+                                    anisotropy_strength=strength, anisotropy_angle=angle, specular=specular,
+                                    specular_color=colour, ior=ior, metallic=np.zeros(p),
+                                    normal=None if normal is None else np.asarray(normal, float))
     seconds = time.perf_counter() - start
     at_bound = np.isclose(fit["alpha_x"], FIT_ALPHA_RANGE[1]) | np.isclose(fit["alpha_y"], FIT_ALPHA_RANGE[0])
     record = {"alpha_x": fit["alpha_x"], "alpha_y": fit["alpha_y"], "scale": fit["scale"],
@@ -172,7 +234,8 @@ def orient_directions(angle: np.ndarray, strength: np.ndarray, weak: float = 0.0
 
 
 def encode_textures(material: GltfMaterial) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-    """(8-bit images (rows, cols, channels) by name of :data:`IMAGES`, the material's scalar factors)."""
+    """(8-bit images (rows, cols, channels) by name of :data:`ALL_IMAGES`, the material's scalar factors); the
+    ``normal`` image only for a material with shading normals."""
     shape = (material.plane.rows, material.plane.cols)
     colour_factor = float(max(1.0, np.max(material.specular_color)))
     angle = orient_directions(material.anisotropy_angle.reshape(shape),
@@ -186,8 +249,13 @@ def encode_textures(material: GltfMaterial) -> tuple[dict[str, np.ndarray], dict
         "specular": _to_byte(np.concatenate([srgb_encode(material.specular_color / colour_factor),
                                              material.specular[:, None]], -1)),
     }
+    factors = {"specularColorFactor": [colour_factor] * 3, "ior": material.ior}
+    normal = getattr(material, "normal", None)
+    if normal is not None:
+        images["normal"] = _to_byte(np.asarray(normal, float) * 0.5 + 0.5)   # tangent space = the plane's frame
+        factors["normalScale"] = 1.0
     images = {k: v.reshape(shape + (v.shape[-1],)) for k, v in images.items()}
-    return images, {"specularColorFactor": [colour_factor] * 3, "ior": material.ior}
+    return images, factors
 
 
 def decode_textures(images: dict[str, np.ndarray], factors: dict[str, Any], plane: PlaneGrid) -> GltfMaterial:
@@ -198,14 +266,20 @@ def decode_textures(images: dict[str, np.ndarray], factors: dict[str, Any], plan
 
     rg = flat("anisotropy", [0, 1]) * 2.0 - 1.0
     mr = flat("metallic_roughness", [1, 2])
-    return GltfMaterial(
+    normal = None
+    if "normal" in images:     # the core spec: normalize((2 RGB - 1) (scale, scale, 1))
+        scale = float(factors.get("normalScale", 1.0))
+        n = (flat("normal", [0, 1, 2]) * 2.0 - 1.0) * np.array([scale, scale, 1.0])
+        length = np.linalg.norm(n, axis=-1, keepdims=True)
+        normal = np.where(length > 0, n / np.where(length > 0, length, 1.0), [0.0, 0.0, 1.0])
+    return NormalMappedMaterial(
         plane=plane, base_color=srgb_decode(flat("base_color", [0, 1, 2])) * factors.get("baseColorFactor", 1.0),
         roughness=mr[:, 0] * factors.get("roughnessFactor", 1.0),
         anisotropy_strength=flat("anisotropy", 2) * factors.get("anisotropyStrength", 1.0),
         anisotropy_angle=np.arctan2(rg[:, 1], rg[:, 0]) + factors.get("anisotropyRotation", 0.0),
         specular=flat("specular", 3) * factors.get("specularFactor", 1.0),
         specular_color=srgb_decode(flat("specular", [0, 1, 2])) * np.asarray(factors["specularColorFactor"]),
-        ior=float(factors["ior"]), metallic=mr[:, 1] * factors.get("metallicFactor", 1.0))
+        ior=float(factors["ior"]), metallic=mr[:, 1] * factors.get("metallicFactor", 1.0), normal=normal)
 
 
 def _write_png(path: Path, image: np.ndarray) -> None:
@@ -258,9 +332,10 @@ def _quad(plane: PlaneGrid) -> tuple[bytes, dict[str, Any]]:
 
 def gltf_document(material: GltfMaterial, factors: dict[str, Any], bin_length: int, quad: dict[str, Any],
                   source: str) -> dict[str, Any]:
-    """The glTF JSON (built with pygltflib's classes, so its field names are the library's)."""
+    """The glTF JSON (built with pygltflib's classes, so its field names are the library's); a normalTexture
+    when the material has shading normals."""
     import pygltflib as g
-    names = list(IMAGES)
+    names = list(IMAGES) + (["normal"] if getattr(material, "normal", None) is not None else [])
     tex = {name: i for i, name in enumerate(names)}
     pbr = g.PbrMetallicRoughness(baseColorTexture=g.TextureInfo(index=tex["base_color"]), metallicFactor=0.0,
                                  roughnessFactor=1.0,
@@ -274,10 +349,13 @@ def gltf_document(material: GltfMaterial, factors: dict[str, Any], bin_length: i
                                    "specularColorTexture": {"index": tex["specular"]}},
         "KHR_materials_ior": {"ior": factors["ior"]},
     }
+    normal_texture = (g.NormalMaterialTexture(index=tex["normal"], scale=factors.get("normalScale", 1.0))
+                      if "normal" in tex else None)
     extras = {"facetsynth": {"source": source, "plane_grid": {"width": plane.width, "height": plane.height,
                                                               "cols": plane.cols, "rows": plane.rows},
                              "frame": "glTF (X, Y, Z) = sample plane (x, z, -y) in metres; tangent +x, "
-                                      "bitangent +y; uv (0, 0) = grid row 0 (+y edge), col 0 (-x edge)",
+                                      "bitangent +y; uv (0, 0) = grid row 0 (+y edge), col 0 (-x edge); "
+                                      "normalTexture (if any): tangent-space (X, Y, Z) = the plane's (x, y, z)",
                              "model": "facetsynth.ggx (glTF 2.0 Appendix B + KHR_materials_anisotropy, "
                                       "_specular, _ior), fitted per point to paper 002 eq. 6"}}
     doc = g.GLTF2(
@@ -286,11 +364,12 @@ def gltf_document(material: GltfMaterial, factors: dict[str, Any], bin_length: i
         nodes=[g.Node(mesh=0, name="sample")],
         meshes=[g.Mesh(name="sample", primitives=[g.Primitive(
             attributes=g.Attributes(POSITION=0, NORMAL=1, TANGENT=2, TEXCOORD_0=3), indices=4, material=0)])],
-        materials=[g.Material(name="facetsynth", pbrMetallicRoughness=pbr, extensions=extensions, extras=extras)],
+        materials=[g.Material(name="facetsynth", pbrMetallicRoughness=pbr, normalTexture=normal_texture,
+                              extensions=extensions, extras=extras)],
         textures=[g.Texture(sampler=0, source=i) for i in range(len(names))],
         samplers=[g.Sampler(magFilter=LINEAR, minFilter=LINEAR_MIPMAP_LINEAR, wrapS=CLAMP_TO_EDGE,
                             wrapT=CLAMP_TO_EDGE)],
-        images=[g.Image(uri=IMAGES[n], mimeType="image/png", name=n) for n in names],
+        images=[g.Image(uri=ALL_IMAGES[n], mimeType="image/png", name=n) for n in names],
         buffers=[g.Buffer(uri=BIN_NAME, byteLength=bin_length)],
         bufferViews=[g.BufferView(**v) for v in quad["bufferViews"]],
         accessors=[g.Accessor(**a) for a in quad["accessors"]])
@@ -356,6 +435,7 @@ def _reference_errors(doc: dict[str, Any], folder: Path) -> list[str]:
     for m, material in enumerate(doc.get("materials", [])):
         infos = [(f"pbrMetallicRoughness/{k}", v) for k, v in material.get("pbrMetallicRoughness", {}).items()
                  if k.endswith("Texture")]
+        infos += [(k, v) for k, v in material.items() if k.endswith("Texture")]     # normalTexture, ...
         infos += [(f"extensions/{e}/{k}", v) for e, ext in material.get("extensions", {}).items()
                   for k, v in ext.items() if k.endswith("Texture")]
         for where, info in infos:
@@ -401,13 +481,16 @@ def read_gltf(path: str | Path) -> GltfMaterial:
                   "anisotropy": image(aniso["anisotropyTexture"]), "specular": image(spec["specularTexture"])}
         if spec["specularColorTexture"]["index"] != spec["specularTexture"]["index"]:
             raise InputError(path, "expected one RGBA texture for specularTexture and specularColorTexture")
+        if "normalTexture" in material:
+            images["normal"] = image(material["normalTexture"])
         factors = {"baseColorFactor": np.asarray(pbr.get("baseColorFactor", [1.0] * 4), float)[:3],
                    "metallicFactor": pbr.get("metallicFactor", 1.0), "roughnessFactor": pbr.get("roughnessFactor", 1.0),
                    "anisotropyStrength": aniso.get("anisotropyStrength", 0.0),
                    "anisotropyRotation": aniso.get("anisotropyRotation", 0.0),
                    "specularFactor": spec.get("specularFactor", 1.0),
                    "specularColorFactor": spec.get("specularColorFactor", [1.0] * 3),
-                   "ior": ext.get("KHR_materials_ior", {}).get("ior", 1.5)}
+                   "ior": ext.get("KHR_materials_ior", {}).get("ior", 1.5),
+                   "normalScale": material.get("normalTexture", {}).get("scale", 1.0)}
     except (KeyError, IndexError, TypeError, ValueError) as exc:
         raise InputError(path, f"not a facetsynth glTF export (missing {exc})") from None
     for name, a in images.items():
@@ -420,7 +503,8 @@ def read_gltf(path: str | Path) -> GltfMaterial:
 def round_trip_errors(fitted: GltfMaterial, read: GltfMaterial) -> dict[str, float]:
     """Largest differences between the fitted material and the one read from the files (8-bit quantisation:
     linear channels within 0.5/255; sRGB ones within half a code in linear terms; the anisotropy direction
-    where the strength is above 0.02)."""
+    where the strength is above 0.02; ``normal_angle_deg`` the angle between the shading normals, degrees,
+    about 0.33 at most for 8 bits; 0 when neither has normals)."""
     aniso = fitted.anisotropy_strength > 0.02
     turn = np.angle(np.exp(2j * (read.anisotropy_angle - fitted.anisotropy_angle))) / 2   # a direction: mod pi
     return {"base_color": float(np.max(np.abs(read.base_color - fitted.base_color))),
@@ -429,7 +513,10 @@ def round_trip_errors(fitted: GltfMaterial, read: GltfMaterial) -> dict[str, flo
             "anisotropy_angle_rad": float(np.max(np.abs(turn[aniso]))) if aniso.any() else 0.0,
             "specular": float(np.max(np.abs(read.specular - fitted.specular))),
             "specular_color_relative": float(np.max(np.abs(read.specular_color - fitted.specular_color))
-                                             / max(1.0, float(np.max(fitted.specular_color))))}
+                                             / max(1.0, float(np.max(fitted.specular_color)))),
+            "normal_angle_deg": float(np.max(normal_angles(getattr(fitted, "normal", None),
+                                                           getattr(read, "normal", None))))
+            if getattr(fitted, "normal", None) is not None or getattr(read, "normal", None) is not None else 0.0}
 
 
 # --- the entry point ----------------------------------------------------------------------------------------
@@ -438,14 +525,14 @@ def write_gltf(out_dir: Path, material: GltfMaterial, source: str) -> list[str]:
     """Write the textures, the buffer and the .gltf (each atomically, the .gltf last); the names written."""
     images, factors = encode_textures(material)
     for name, image in images.items():
-        _write_png(out_dir / IMAGES[name], image)
+        _write_png(out_dir / ALL_IMAGES[name], image)
     blob, quad = _quad(material.plane)
     with atomic_path(out_dir / BIN_NAME, suffix=".bin") as tmp:
         tmp.write_bytes(blob)
     doc = gltf_document(material, factors, len(blob), quad, source)
     with atomic_path(out_dir / GLTF_NAME, suffix=".gltf") as tmp:
         tmp.write_text(json.dumps(doc, indent=1) + "\n")
-    return [IMAGES[n] for n in images] + [BIN_NAME, GLTF_NAME]
+    return [ALL_IMAGES[n] for n in images] + [BIN_NAME, GLTF_NAME]
 
 
 def export_gltf(model_dir: str | Path, out_dir: str | Path, *, force: bool = False, weight_quantum: float = 0.01,

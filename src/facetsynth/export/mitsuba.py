@@ -4,10 +4,14 @@ The exported folder is self-contained (numpy and Mitsuba 3 only, no facetsynth):
 
     model.npz           the model's tables: kd, ks, eta per point, the representative NDFs and their eq. 5
                         projected areas on their polar grids, the eq. 18 neighbours and weights, the per-point
-                        rotation (when the model has one), the plane grid and the direction grids
+                        rotation and shading normal (when the model has them), the plane grid and the
+                        direction grids
     facetsynth_bsdf.py  the BSDF plugin (:mod:`facetsynth.export.mitsuba_bsdf`): a registered Python
                         ``mi.BSDF`` ("facetsynth_svbrdf") that evaluates rho exactly as
-                        :meth:`facetsynth.svbrdf.SVBRDF.eval_index` and importance-samples it
+                        :meth:`facetsynth.svbrdf.SVBRDF.eval` and importance-samples it; with shading
+                        normals it turns Mitsuba's directions (the quad's frame, the sample plane's) into
+                        each point's shading frame itself (facetsynth.normals' R(x); its docstring says
+                        why not Mitsuba's ``normalmap`` BSDF), so the scene is the same with or without them
     scene.xml           Mitsuba 3 scene: the sample as a ``rectangle`` of the model's width x height on z = 0
                         (uv: u = x/W + 1/2, v = y/H + 1/2; shading frame s = +x, t = +y, n = +z: the sample
                         plane's), a perspective sensor, a point light, the ``direct`` integrator, a box
@@ -61,6 +65,8 @@ def model_arrays(model: SVBRDF) -> dict[str, np.ndarray]:
     }
     if model.rotation is not None:
         arrays["rotation"] = np.asarray(model.rotation, np.float64).reshape(p)
+    if getattr(model, "normal", None) is not None:
+        arrays["normal"] = np.asarray(model.normal, np.float64).reshape(p, 3)
     if model.representatives is not None:
         arrays["representatives"] = np.asarray(model.representatives, np.int64)
     return arrays
@@ -80,7 +86,8 @@ def scene_xml(width: float, height: float, model_file: str = "model.npz") -> str
          import facetsynth_bsdf; facetsynth_bsdf.register()
          scene = mi.load_file("scene.xml", spp="16", light_position="0, 0, 0.3")
      or run render.py. Units: metres. The sample is z = 0, normal +z; its uv (u = x/W + 1/2, v = y/H + 1/2)
-     selects the model's point, its shading frame (s = +x, t = +y, n = +z) is the sample plane's.
+     selects the model's point, its shading frame (s = +x, t = +y, n = +z) is the sample plane's (the
+     plugin turns it to the point's shading normal itself when the model has them).
      to_world: the camera-to-world matrix, 16 numbers row by row (Mitsuba camera: x left, y up, z forward);
      ppx, ppy: principal point offsets (film fractions); light_intensity: radiant intensity (W/sr). -->
 <scene version="3.0.0">
@@ -167,6 +174,7 @@ def export_mitsuba(model_dir: str | Path, out_dir: str | Path, *, force: bool = 
         "representatives": int(model.ndf.shape[0]),
         "neighbours": int(model.neighbours.shape[1]),
         "rotation": model.rotation is not None,
+        "normal": getattr(model, "normal", None) is not None,
         "model_format_version": mitsuba_bsdf.FORMAT_VERSION,
         "usage": "python render.py --theta 30 --phi 0 --distance 0.3 --out view.exr; "
                  "python render.py --manifest CAPTURE/manifest.json --frame Q --out frame.exr",

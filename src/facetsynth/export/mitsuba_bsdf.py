@@ -18,6 +18,18 @@ z = 0 whose uv is Mitsuba's ``rectangle`` parametrisation, u = x/W + 1/2,
 v = y/H + 1/2, and whose shading frame is the sample plane's (s = +x, t = +y,
 n = +z); cell (row, col) = (floor((1 - v) rows), floor(u cols)).
 
+Shading normals (``normal`` in model.npz, when the model has them): the directions Mitsuba gives (in the
+quad's frame, the sample plane's) are turned into the point's shading frame, i_local = R(x) i with R(x) the
+smallest rotation taking the point's normal n(x) to +z (facetsynth.normals.shading_frames, the same
+formula here), rho is evaluated there, the cosine is n(x) . i (the local z), and rho = 0 also where the
+light or the view is at or below the sample plane. So :meth:`TabulatedSVBRDF.eval` equals
+``facetsynth.svbrdf.SVBRDF.eval`` (world directions) and Mitsuba's pixel is rho (n(x) . i) L / r^2,
+facetsynth's. The plugin turns the frame itself rather than being wrapped in Mitsuba's ``normalmap`` BSDF:
+``normalmap`` builds its frame from dp/du by Gram-Schmidt (a different twist about n than R(x) when n
+leans along both x and y: up to about tilt^2 / 4 radians, 4.1 deg at a 30 deg tilt, by which an
+anisotropic lobe would turn), filters the normal texture bilinearly across
+cells where the model has one normal per cell, and masks only the light's side of the geometric horizon.
+
 Importance sampling (path tracing): with probability p_spec = mean(ks) /
 (mean(ks) + mean(kd)) a half vector is drawn: a representative k with
 probability proportional to max(w(x, k), 0), then a grid cell of that
@@ -26,7 +38,9 @@ D_k(h) cos(theta_h) Omega_cell (cells where D_k is 0 get half their 3 x 3
 neighbourhood's maximum, so every direction where the bilinear lookup is
 positive can be drawn), uniformly in solid angle inside the cell, turned back
 by -phi_x, and the view direction reflected about it; otherwise a cosine lobe.
-pdf(o) = (1 - p_spec) cos(theta_o)/pi + p_spec sum_k q_k p_k(R h) / (4 |o.h|).
+pdf(o) = (1 - p_spec) cos(theta_o)/pi + p_spec sum_k q_k p_k(R h) / (4 |o.h|). With shading normals
+all this happens in the point's frame (a rotation keeps solid angles: the pdf is the same number), and a
+direction drawn below the sample plane is no sample.
 
 Usage (see ``render.py`` beside this file)::
 
@@ -138,8 +152,10 @@ def _half(wi, wo) -> tuple[float, float, float]:
 class TabulatedSVBRDF:
     """The exported model (``model.npz``): evaluation, sampling and pdf at one point and one pair of directions.
 
-    Directions are unit 3-vectors in the sample-plane frame (x, y in the plane, z the normal). ``eval`` takes
-    (light, view) as facetsynth's ``eval_index(index, wi, wo)``; the model is reciprocal.
+    Directions are unit 3-vectors in the sample-plane frame (x, y in the plane, z the plane's normal).
+    ``eval`` takes (light, view) as facetsynth's ``SVBRDF.eval(points, wi, wo)`` (world directions; without
+    shading normals the same as ``eval_index(index, wi, wo)``); the model is reciprocal. With shading normals
+    (``frames`` not None) every query is turned into the point's shading frame first (module docstring).
     """
 
     def __init__(self, data):
@@ -180,6 +196,19 @@ class TabulatedSVBRDF:
             self.turn = list(zip(np.cos(rotation).tolist(), np.sin(rotation).tolist()))
         else:
             self.turn = None
+        # shading frames: R (row by row) with R n = +z, facetsynth.normals.shading_frames' formula
+        normal = np.asarray(data["normal"]) if "normal" in data else np.zeros(0)
+        if normal.size:
+            n = normal.astype(np.float64).reshape(p, 3)
+            if not np.isfinite(n).all() or not (n[:, 2] > 0).all():
+                raise ValueError("shading normals must be finite and face up (n_z > 0)")
+            n = n / np.linalg.norm(n, axis=1, keepdims=True)
+            x, y, z = n[:, 0], n[:, 1], n[:, 2]
+            c = 1.0 / (1.0 + z)
+            frames = np.stack([1 - x * x * c, -x * y * c, -x, -x * y * c, 1 - y * y * c, -y, x, y, z], -1)
+            self.frames = [tuple(f) for f in frames.tolist()]
+        else:
+            self.frames = None
         # diffuse / specular choice and each point's representative choice
         kd_mean, ks_mean = np.clip(kd.mean(1), 0, None), np.clip(ks.mean(1), 0, None)
         positive = np.clip(w64, 0.0, None)
@@ -233,6 +262,30 @@ class TabulatedSVBRDF:
         """Flat cell index of a sample-plane point (metres); -1 off the sample."""
         return self.point_uv(x / self.width + 0.5, y / self.height + 0.5)
 
+    # --- shading frames -------------------------------------------------------------
+    def local(self, index: int, d):
+        """Direction d (sample-plane frame) in point ``index``'s shading frame, R d (d itself when flat)."""
+        if self.frames is None:
+            return d
+        r = self.frames[index]
+        return (r[0] * d[0] + r[1] * d[1] + r[2] * d[2], r[3] * d[0] + r[4] * d[1] + r[5] * d[2],
+                r[6] * d[0] + r[7] * d[1] + r[8] * d[2])
+
+    def world(self, index: int, d):
+        """Direction d of point ``index``'s shading frame in the sample-plane frame, R^T d."""
+        if self.frames is None:
+            return d
+        r = self.frames[index]
+        return (r[0] * d[0] + r[3] * d[1] + r[6] * d[2], r[1] * d[0] + r[4] * d[1] + r[7] * d[2],
+                r[2] * d[0] + r[5] * d[1] + r[8] * d[2])
+
+    def cosine(self, index: int, d) -> float:
+        """n(x) . d: the foreshortening of direction d (sample-plane frame) at point ``index``."""
+        if self.frames is None or index < 0:
+            return d[2]
+        r = self.frames[index]
+        return r[6] * d[0] + r[7] * d[1] + r[8] * d[2]
+
     # --- the model ------------------------------------------------------------------
     def _turned(self, index: int, d):
         if self.turn is None:
@@ -261,8 +314,15 @@ class TabulatedSVBRDF:
         return d / (4.0 * (a_i * a_o)), c
 
     def eval(self, index: int, wi, wo, diffuse: bool = True, glossy: bool = True) -> tuple[float, float, float]:
-        """rho (r, g, b) in 1/sr at point ``index`` for unit directions wi (light) and wo (view): 0 below the
-        horizon and off the sample, never NaN or Inf. ``diffuse`` / ``glossy`` keep one term only."""
+        """rho (r, g, b) in 1/sr at point ``index`` for unit directions wi (light) and wo (view) in the
+        sample-plane frame: 0 below the horizon (the sample plane's and the shading frame's) and off the
+        sample, never NaN or Inf. ``diffuse`` / ``glossy`` keep one term only."""
+        if index < 0 or not (wi[2] > 0.0 and wo[2] > 0.0):
+            return (0.0, 0.0, 0.0)
+        return self.eval_local(index, self.local(index, wi), self.local(index, wo), diffuse, glossy)
+
+    def eval_local(self, index: int, wi, wo, diffuse: bool = True, glossy: bool = True) -> tuple[float, float, float]:
+        """:meth:`eval` for directions already in the point's shading frame (facetsynth's ``eval_index``)."""
         if index < 0 or not (wi[2] > 0.0 and wo[2] > 0.0):
             return (0.0, 0.0, 0.0)
         kd, ks = self.kd[index], self.ks[index]
@@ -280,6 +340,10 @@ class TabulatedSVBRDF:
         """Solid-angle density (1/sr) with which :meth:`sample` draws wo given wi (0 below the horizon)."""
         if index < 0 or not (wi[2] > 0.0 and wo[2] > 0.0):
             return 0.0
+        if self.frames is not None:
+            wi, wo = self.local(index, wi), self.local(index, wo)
+            if not (wi[2] > 0.0 and wo[2] > 0.0):
+                return 0.0
         p_spec = self.p_spec[index]
         if not diffuse:
             p_spec = 1.0 if p_spec > 0 else 0.0
@@ -306,6 +370,10 @@ class TabulatedSVBRDF:
         horizon, or the reflection about the drawn half vector falls below it).
         """
         if index < 0 or not wi[2] > 0.0:
+            return None
+        world_wi = wi
+        wi = self.local(index, wi)
+        if not wi[2] > 0.0:
             return None
         p_spec = self.p_spec[index]
         if not diffuse:
@@ -343,7 +411,10 @@ class TabulatedSVBRDF:
             wo = (r * math.cos(phi), r * math.sin(phi), math.sqrt(max(0.0, 1.0 - u)))
         if not wo[2] > 0.0:
             return None
-        pdf = self.pdf(index, wi, wo, diffuse, glossy)
+        wo = self.world(index, wo)
+        if not wo[2] > 0.0:                                # drawn below the sample plane: no sample
+            return None
+        pdf = self.pdf(index, world_wi, wo, diffuse, glossy)
         if not pdf > 0.0:
             return None
         return wo, pdf, lobe
@@ -400,9 +471,9 @@ def register(name: str = PLUGIN_NAME):
             return index, wi, diffuse, glossy
 
         def _eval(self, index, wi, wo, diffuse, glossy):
-            # facetsynth's rho(light = wo, view = wi) times the cosine at the light
+            # facetsynth's rho(light = wo, view = wi) times the cosine at the light, n(x) . wo
             rho = self.model.eval(index, wo, wi, diffuse, glossy)
-            c = max(wo[2], 0.0)
+            c = max(self.model.cosine(index, wo), 0.0)
             return mi.Color3f(rho[0] * c, rho[1] * c, rho[2] * c)
 
         def eval(self, ctx, si, wo, active=True):

@@ -14,7 +14,6 @@ import numpy as np
 from tqdm import tqdm
 
 from ..fileio import atomic_path, read_exr, write_json
-from ..render import light_geometry
 from ..ward import WardSVBRDF, fit_points
 from .common import TILE_POINTS, RectifiedCapture, part_points, part_records
 
@@ -69,7 +68,7 @@ def _fit_points(capture: RectifiedCapture, specular, valid, points: slice, max_n
         if visible.size == 0:
             continue
         p = visible + t0
-        wi, _ = light_geometry(capture.points[p][:, None], capture.light_positions)       # (T, F, 3)
+        wi, _ = capture.light_directions(p)                                                  # (T, F, 3)
         rho_s = np.asarray(spec[tile], float)[visible].mean(axis=-1)                     # (T, F)
         use = np.asarray(ok[tile], bool)[visible] & (wi[..., 2] > 0) & np.isfinite(rho_s)
         fit = fit_points(rho_s, wi, view[p][:, None], use, max_iterations=max_nfev)

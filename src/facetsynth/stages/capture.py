@@ -27,14 +27,15 @@ def run(source: str, path: str | Path, out_dir: str | Path, rig: str | Path, see
         rotation_deg: float = 0.0, threads: int = 1) -> None:
     """Produce the capture folder ``out_dir`` (``manifest.json`` + frames) for one sample: a virtual scene
     turned by ``rotation_deg`` on the virtual rig ``rig``, its frames rendered on ``threads`` threads; a
-    capture folder made elsewhere (``import``); or the real rig of the description ``path``
+    capture folder made elsewhere (``import``) or a light dome's ``.lp`` file (``lp``, its photos read where they
+    are); or the real rig of the description ``path``
     (:mod:`facetsynth.rig.session`: resumes an interrupted capture)."""
     if source == "virtual":
         log.info("virtual capture of scene %s turned by %g deg with rig %s (seed %d, noise %s)", path, rotation_deg,
                  rig, seed, noise)
         virtual_capture(path, VirtualRig.load(rig), out_dir, seed=seed, noise=noise, rotation_deg=rotation_deg,
                         threads=threads)
-    elif source == "import":
+    elif source in ("import", "lp"):
         import_capture(path, out_dir)
     else:
         rig_capture(RigDescription.load(path), out_dir)

@@ -216,7 +216,7 @@ def pooled_representatives(capture: RectifiedCapture, visible: np.ndarray, resul
                                                max_shift=grid.n_phi // 4)
         turning = np.median(gain) < TURN_GAIN and np.std(turn) > TURN_SPREAD * grid.d_phi
         fit = pndf.pooled_fit(np.asarray(specular[members], float).mean(axis=-1), np.asarray(valid[members]),
-                              capture.points[members], views[members], capture.light_positions, w_members,
+                              capture.light_directions(members)[0], views[members], w_members,
                               views[own], grid, constrained, grazing_deg, tol, max_iter,
                               rotation=turn if turning else None)
         ndf[c], conf[c], counts[c] = fit.ndf[0], fit.confidence[0], members.size

@@ -8,7 +8,10 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import manifest as manifest_io
 from ..fileio import read_json
+from ..normals import shading_frames, to_local
+from ..render import light_geometry, towards
 from ..plane import PlaneGrid
 from ..scene import MaterialMaps, Scene
 
@@ -26,16 +29,20 @@ class StageSettings:
 
 @dataclass(frozen=True)
 class RectifiedCapture:
-    """``rectify/geometry.json``: the grid, the points, the lights, the view."""
+    """``rectify/geometry.json``: the grid, the points, the lights, the view; and ``separate/geometry.json``, the
+    same with each point's shading normal (:mod:`facetsynth.normals`). With normals, every direction the
+    stages get (:meth:`light_directions`, :meth:`view_directions`) is in the point's shading frame, so that
+    each stage's eq. 6 is the point's own, and i.z is n(x) . i."""
 
     folder: Path
     grid: PlaneGrid
     visible: np.ndarray            # (P,) bool
-    light_positions: np.ndarray    # (F, 3)
+    lights: np.ndarray             # (F, 4) homogeneous: (P, 1) point lights, (d, 0) directional
     light_intensities: np.ndarray  # (F, 3)
-    view_position: np.ndarray      # (3,) camera centre V
+    view_point: np.ndarray         # (4,) homogeneous: (V, 1) the camera centre, (o, 0) orthographic
     frame_files: list[Path]
     truth_scene: Path | None
+    normals: np.ndarray | None = None   # (P, 3) unit shading normals, world frame; None: the plane's +z
 
     @classmethod
     def load(cls, path: str | Path) -> "RectifiedCapture":
@@ -44,11 +51,12 @@ class RectifiedCapture:
         truth = g.get("truth", {}).get("scene")
         return cls(folder=path.parent, grid=PlaneGrid.from_dict(g["grid"]),
                    visible=np.asarray(g["visible"], bool).ravel(),
-                   light_positions=np.array([f["light"]["position"] for f in g["frames"]], float),
-                   light_intensities=np.array([f["light"]["intensity"] for f in g["frames"]], float),
-                   view_position=np.asarray(g["view_position"], float),
+                   lights=manifest_io.lights(g["frames"]),
+                   light_intensities=manifest_io.light_intensities(g["frames"]),
+                   view_point=np.asarray(g["view_point"], float),
                    frame_files=[path.parent / f["file"] for f in g["frames"]],
-                   truth_scene=None if truth is None else (path.parent / truth).resolve())
+                   truth_scene=None if truth is None else (path.parent / truth).resolve(),
+                   normals=None if "normals" not in g else np.load(path.parent / g["normals"]).astype(float))
 
     @property
     def points(self) -> np.ndarray:
@@ -59,13 +67,19 @@ class RectifiedCapture:
     def n_points(self) -> int:
         return self.grid.rows * self.grid.cols
 
-    def view_directions(self, per_point: bool) -> np.ndarray:
-        """o per point (P, 3): exact per-point view, or the paper's view at the sample centre."""
-        if per_point:
-            d = self.view_position - self.points
-        else:
-            d = np.broadcast_to(self.view_position, (self.n_points, 3))
-        return d / np.linalg.norm(d, axis=-1, keepdims=True)
+    def view_directions(self, per_point: bool, index=slice(None)) -> np.ndarray:
+        """o (p, 3) of the points ``index`` (default all): exact per point, or the paper's view at the sample
+        centre."""
+        points = self.points[index]
+        o = towards(points if per_point else np.zeros_like(points), self.view_point)
+        return o if self.normals is None else to_local(shading_frames(self.normals[index]), o)
+
+    def light_directions(self, index) -> tuple[np.ndarray, np.ndarray]:
+        """i (p, F, 3) and |P - x|^2 (p, F) (1 for directional lights) of the points ``index``, eq. 8."""
+        wi, r2 = light_geometry(self.points[index][:, None, :], self.lights[None])
+        if self.normals is not None:
+            wi = to_local(shading_frames(self.normals[index])[:, None], wi)
+        return wi, r2
 
     def truth(self) -> MaterialMaps | None:
         """The true SVBRDF parameters at every point, for virtual captures."""

@@ -43,7 +43,7 @@ def score_view(model, folder: str | Path, supersample: int = 1) -> dict[str, Any
     truth = np.stack([read_rgb(f["truth"]["radiance"]) for f in m["frames"]]).astype(float)
     renderer = FrameRenderer(model, manifest_io.camera(m))
     mask = renderer.sample_mask
-    prediction = np.stack([renderer.radiance(f["light"]["position"], f["light"]["intensity"])
+    prediction = np.stack([renderer.radiance(manifest_io.light_point(f["light"]), f["light"]["intensity"])
                            for f in m["frames"]]).astype(float)
     diffuse, specular_mask = None, None
     if manifest_io.has_truth(m):

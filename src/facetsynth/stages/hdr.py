@@ -5,6 +5,14 @@ pixel format: :func:`facetsynth.fileio.exposure_bits`): for those the camera res
 the capture's brackets (Debevec and Malik 1997, :mod:`facetsynth.response`), the codes linearized with it
 and merged with its 8-bit sensor model (code 255 clipped, code 0 the noise floor, quantisation noise); the
 manifest's ``saturation`` and ``noise`` are then not used (the linear scale puts clipping at 1).
+
+A manifest that declares the ``transfer`` of its 8-bit exposures (sRGB, linear or a gamma,
+:mod:`facetsynth.transfer`) and optionally a ``black_level`` replaces the recovery: the codes are decoded
+with it, the black level subtracted (``max(0, L - b) / (1 - b)``: code 255 stays 1), and merged with the
+same sensor model (:meth:`facetsynth.response.Response.from_transfer`), so one exposure per frame is
+enough (a light dome's one sRGB JPEG per light). A channel at code 255 is clipped: a pixel where every
+exposure clipped is flagged ``saturated`` like a clipped HDR value. ``transfer`` on EXR exposures, and a
+``black_level`` without a ``transfer``, are InputErrors.
 """
 
 from __future__ import annotations
@@ -27,6 +35,7 @@ from ..hdr import SensorModel, merge_exposures
 from ..lightplane import LightTriangulation
 from ..metrics import relative_errors
 from ..response import Response, ResponseSettings, recover_response
+from ..transfer import Transfer, parse as parse_transfer
 from .common import flag_degenerate
 
 log = logging.getLogger(__name__)
@@ -43,7 +52,8 @@ def run(capture_dir: str | Path, frames_dir: str | Path, manifest_out: str | Pat
     ``threads`` threads. Negative exposure values are clipped (:class:`Negatives`): their count is
     in the metrics (``negative_values``) and each frame's header, and a WARNING names the first file.
     A run killed at any point resumes in the staging folder, to the same bytes.
-    8-bit exposures (module docstring): the recovered curve is in the metrics (``response``).
+    8-bit exposures (module docstring): the recovered or declared curve is in the metrics (``response``),
+    a declared transfer and black level also as ``transfer``.
     """
     capture = manifest_io.load(capture_dir)
     manifest_path = Path(capture["_dir"]) / "manifest.json"
@@ -54,11 +64,20 @@ def run(capture_dir: str | Path, frames_dir: str | Path, manifest_out: str | Pat
                          saturation_margin=saturation_margin)
     shape = (capture["camera"]["height"], capture["camera"]["width"], 3)
     response = None
+    transfer, black_level = _declared_transfer(capture, manifest_path)
     if _eight_bit(capture, manifest_path):
-        response = _recover_response(capture, shape, manifest_path, response_settings)
+        if transfer is not None:
+            response = Response.from_transfer(transfer, black_level)
+            log.info("8-bit exposures: declared transfer %s, black level %g", transfer.describe(), black_level)
+        else:
+            response = _recover_response(capture, shape, manifest_path, response_settings)
+            log.info("8-bit exposures: camera response recovered (Debevec-Malik 1997; scale from %s)",
+                     ", ".join(response.scale_from))
         sensor = response.sensor_model(floor_sigmas)
-        log.info("8-bit exposures: camera response recovered (Debevec-Malik 1997; scale from %s)",
-                 ", ".join(response.scale_from))
+    elif transfer is not None:
+        raise InputError(manifest_path, f'"transfer" ({transfer.describe()}) applies to 8-bit exposures only; '
+                                        f"these are EXR (linear exposure values, e.g. "
+                                        f"{capture['frames'][0]['exposures'][0]['file']}): drop the key")
     frames_dir, manifest_out = Path(frames_dir), Path(manifest_out)
     key = {"capture": file_key(manifest_path), "sensor": asdict(sensor)}
     if response is not None:
@@ -103,7 +122,9 @@ def run(capture_dir: str | Path, frames_dir: str | Path, manifest_out: str | Pat
     saturated_total = sum(m.saturated for m in per_frame)
     negatives = Negatives.total([m.negatives for m in per_frame])
     errors = [m.errors for m in per_frame if m.errors is not None]
-    hdr_manifest = {**{k: v for k, v in capture.items() if k not in ("frames", "_dir")}, "saturation": None}
+    # The merged frames are linear EXR: the 8-bit exposures' transfer and black level do not apply to them.
+    hdr_manifest = {**{k: v for k, v in capture.items() if k not in ("frames", "_dir", "transfer", "black_level")},
+                    "saturation": None}
     hdr_manifest["frames"] = frames
     hdr_manifest["noise"] = {"read_sigma": 0.0, "shot_gain": 0.0}
     if "scene" in capture.get("truth", {}):
@@ -122,8 +143,13 @@ def run(capture_dir: str | Path, frames_dir: str | Path, manifest_out: str | Pat
                     "level, below the noise floor, and clipped to 0", negatives.count, negatives.first_file)
     if response is not None:
         metrics["exposure_bits"] = 8
-        metrics["response"] = {"method": "Debevec and Malik 1997 (cv2.createCalibrateDebevec)",
-                               "scale_from": list(response.scale_from),
+        if transfer is not None:
+            metrics["transfer"] = {"declared": transfer.to_json(), "description": transfer.describe(),
+                                   "black_level": black_level}
+            method = f"declared transfer: {transfer.describe()}, black level {black_level:g}"
+        else:
+            method = "Debevec and Malik 1997 (cv2.createCalibrateDebevec)"
+        metrics["response"] = {"method": method, "scale_from": list(response.scale_from),
                                "sensor": asdict(sensor), **response.to_json()}
     if errors:
         metrics["median_rel_error"] = float(np.median(np.concatenate(errors)))
@@ -136,7 +162,7 @@ def _check_lights(capture: dict, manifest_path: Path) -> None:
     (:class:`facetsynth.lightplane.LightTriangulation`, resample): lights that span no area (fewer than 3,
     or all on one line) are an error here, before any frame is merged."""
     try:
-        LightTriangulation.from_lights(manifest_io.light_positions(capture))
+        LightTriangulation.from_lights(manifest_io.lights(capture["frames"]))
     except ValueError as exc:
         raise InputError(manifest_path, f"too few lights for the method: {exc}; capture under lights spread over "
                                         "a plane above the sample (the paper: 20 x 24 = 480)") from None
@@ -198,6 +224,24 @@ def _read_exposure(file: str, shape: tuple[int, ...], response: Response | None 
         raise InputError(file, f"frame is {image.shape[1]}x{image.shape[0]}, the manifest's camera is "
                                f"{shape[1]}x{shape[0]}")
     return image if response is None else response.linearize(image)
+
+
+def _declared_transfer(capture: dict, manifest_path: Path) -> tuple[Transfer | None, float]:
+    """The manifest's declared ``transfer`` (None: recover the response from brackets) and ``black_level``
+    (0 when absent); a black level without a transfer is an InputError (it would be silently ignored)."""
+    black_level = float(capture.get("black_level", 0.0))
+    if "transfer" not in capture:
+        if black_level:
+            raise InputError(manifest_path, f'"black_level" ({black_level:g}) applies to 8-bit exposures with a '
+                                            'declared "transfer" only: declare the transfer of the 8-bit exposures '
+                                            '(e.g. "transfer": "srgb"), or drop the key')
+        return None, black_level
+    if not 0.0 <= black_level < 1.0:
+        raise InputError(manifest_path, f'"black_level" {black_level:g} is not in [0, 1)')
+    try:
+        return parse_transfer(capture["transfer"]), black_level
+    except ValueError as exc:
+        raise InputError(manifest_path, f'"transfer": {exc}') from None
 
 
 def _eight_bit(capture: dict, manifest_path: Path) -> bool:

@@ -23,7 +23,6 @@ from ..frames import map_frames
 from ..grid import DirectionGrid
 from ..metrics import finite_or_none, spread_about_mean
 from ..microfacet import fresnel, half_vector
-from ..render import light_geometry
 from ..scene import MaterialMaps, Scene
 from ..svbrdf import SVBRDF
 from ..synthesis import SUPPORT
@@ -80,7 +79,8 @@ def build_model(ndf: np.ndarray, grid: DirectionGrid, neighbours: np.ndarray, we
     model = SVBRDF(plane=capture.grid, grid=grid, kd=kd, ks=ks_pt[:, None] * colour,
                    eta=np.full(len(ks_pt), fit.ETA_DEFAULT), ndf=normalised.astype(np.float32),
                    area=area.astype(np.float32), neighbours=nb, weights=mix,
-                   representatives=representatives, eta_fitted=np.zeros(len(ks_pt), bool), rotation=rotation)
+                   representatives=representatives, eta_fitted=np.zeros(len(ks_pt), bool), rotation=rotation,
+                   normal=capture.normals)
     return model, ks_pt, ks_rep
 
 
@@ -101,7 +101,6 @@ def grazing_fresnel(model: SVBRDF, ks_pt: np.ndarray, capture: RectifiedCapture,
     before push-pull, for at least half of the mixture's weight): push-pull's
     extrapolation is no basis for eq. 20. Tiles of points run on ``threads`` threads.
     """
-    points = capture.points
     cos_g = np.cos(np.radians(grazing_deg))
     peak = model.ndf.reshape(model.ndf.shape[0], -1).max(axis=1)
     carried = (model.ndf * cosine).reshape(model.ndf.shape[0], -1).astype(float)
@@ -109,15 +108,14 @@ def grazing_fresnel(model: SVBRDF, ks_pt: np.ndarray, capture: RectifiedCapture,
     keys = ("point", "f_m", "c", "c_ref", "rho_s")
 
     def tile_samples(tile: slice) -> dict[str, np.ndarray]:
-        wi, _ = light_geometry(points[tile][:, None, :], capture.light_positions[None])   # (p, F, 3)
+        wi, _ = capture.light_directions(tile)                                            # (p, F, 3)
         ok = np.asarray(valid[tile], bool) & (wi[..., 2] > 0) & (wi[..., 2] < cos_g)
         ok &= capture.visible[tile][:, None] & (ks_pt[tile][:, None] > 0)
         pp, ff = np.nonzero(ok)
         if pp.size == 0:
             return {}
         index = pp + tile.start
-        o = capture.view_position - points[index]
-        o /= np.linalg.norm(o, axis=-1, keepdims=True)
+        o = capture.view_directions(True, index)
         i = wi[pp, ff]
         h = half_vector(i, o)
         spec, c = model.specular_terms(index, i, o)

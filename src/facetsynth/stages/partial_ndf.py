@@ -38,9 +38,13 @@ class Settings(StageSettings):
 def light_coverage(capture: RectifiedCapture, grid: DirectionGrid):
     """``coverage(points)``: (len, T, F) how well the capture's lights sampled each grid direction from
     each of ``points`` (capture point indices), as W of eq. 12 needs it (:class:`LightFootprint`)."""
-    footprint = LightFootprint.from_lights(capture.light_positions)
-    log.info("lights: %d, spacing %.1f mm, plane z = %.1f mm", len(capture.light_positions),
-             1e3 * footprint.spacing, 1e3 * footprint.height)
+    footprint = LightFootprint.from_lights(capture.lights)
+    if footprint.at_infinity:
+        log.info("directional lights: %d, spacing %.3f on their gnomonic plane z = 1", len(capture.lights),
+                 footprint.spacing)
+    else:
+        log.info("lights: %d, spacing %.1f mm, plane z = %.1f mm", len(capture.lights), 1e3 * footprint.spacing,
+                 1e3 * footprint.height)
     return lambda points: footprint.on_grid(capture.points[points], grid)
 
 
@@ -165,7 +169,7 @@ def variant_errors(geometry: str | Path, slice_path: str | Path, grid_path: str 
     maps = truth.take(index)
     result = {}
     for name, (per_point, constrain) in variants.items():
-        view = capture.view_directions(per_point)[index]
+        view = capture.view_directions(per_point, index)
         fit = pndf.fit(s, c, view, grid, constrain, grazing_deg, tol, max_iter)
         result[name] = _median([_errors(fit.ndf, fit.confidence, view, maps, grid)])
     return result

@@ -61,9 +61,10 @@ def run(hdr_manifest: str | Path, frames_dir: str | Path, geometry_out: str | Pa
             return {"file": f"{frames_dir.name}/{q:04d}.exr", "light": frame["light"]}
 
         frames = map_frames(rectify_frame, list(enumerate(capture["frames"])), threads, "rectify")
-    geometry = {"grid": grid.to_dict(), "view_position": camera.centre.tolist(),
+    geometry = {"grid": grid.to_dict(), "view_point": camera.view_point.tolist(),
                 "visible": visible.astype(int).tolist(), "frames": frames,
-                "camera": {k: capture["camera"][k] for k in ("width", "height", "K", "R", "t")}}
+                "camera": {k: capture["camera"][k] for k in ("width", "height", "K", "R", "t", "projection")
+                           if k in capture["camera"]}}
     if manifest_io.has_truth(capture):
         geometry["truth"] = {"scene": os.path.relpath(capture["truth"]["scene"], geometry_out.parent)}
     write_json(geometry_out, geometry)
@@ -71,7 +72,7 @@ def run(hdr_manifest: str | Path, frames_dir: str | Path, geometry_out: str | Pa
     metrics = {"ground_truth": manifest_io.has_truth(capture), "cols": grid.cols, "rows": grid.rows,
                "resolution_rule": rule, "visible_fraction": float(visible.mean())}
     if metrics["ground_truth"]:
-        metrics.update(_accuracy(Scene.load(capture["truth"]["scene"]), grid, camera.centre, capture,
+        metrics.update(_accuracy(Scene.load(capture["truth"]["scene"]), grid, camera.view_point, capture,
                                  frames_dir, visible))
         log.info("registration error %.3f px (max %.3f), radiance median rel. error %.4f",
                  metrics["registration_error_px"], metrics["registration_error_px_max"],
@@ -91,7 +92,7 @@ def _accuracy(scene: Scene, grid: PlaneGrid, view: np.ndarray, capture: dict, fr
         light = capture["frames"][q]["light"]
         rectified = read_rgb(frames_dir / f"{q:04d}.exr")
         luminance.append(rectified.mean(axis=-1))
-        truth = radiance(points, maps.rho, light["position"], light["intensity"], view)
+        truth = radiance(points, maps.rho, manifest_io.light_point(light), light["intensity"], view)
         errors.append(relative_errors(rectified, truth, interior[..., None] & (truth > 1e-3 * truth.max())))
     background = np.median(np.stack(luminance), axis=0)
     expected = grid.to_pixel(scene.marker_positions[:, 0], scene.marker_positions[:, 1])

@@ -30,7 +30,7 @@ from ..cluster import material_groups, relative_rotation
 from ..synthesis import pairwise_distance, rotate_tuple
 from ..params import normalise, projected_area
 from ..refine import NormalSums, best_turns, parabola_minimum, radiance_weights, solve, stretch
-from ..render import light_geometry, unit
+
 from ..svbrdf import SVBRDF
 from .common import TILE_POINTS, RectifiedCapture, StageSettings, strided, tiles
 from .params import spread_scores
@@ -74,13 +74,13 @@ def samples(capture: RectifiedCapture, specular, valid, index: np.ndarray) -> tu
     """The valid samples of points ``index`` lit from above (i.z > 0), finite: (row in ``index`` (S,), frame
     (S,), i (S, 3), radiance weights u (S, 3), the specular residual rho - kd/pi (S, 3), and the view o of
     every point of ``index`` (N, 3))."""
-    wi, r2 = light_geometry(capture.points[index][:, None, :], capture.light_positions[None])
+    wi, r2 = capture.light_directions(index)
     rho_s = np.asarray(specular[index], np.float32)
     ok = np.asarray(valid[index], bool) & (wi[..., 2] > 0) & capture.visible[index][:, None]
     ok &= np.isfinite(rho_s).all(axis=-1)
     pp, ff = np.nonzero(ok)
     u = radiance_weights(wi[pp, ff], r2[pp, ff], capture.light_intensities[ff])
-    views = unit(capture.view_position - capture.points[index])
+    views = capture.view_directions(True, index)
     return pp, ff, wi[pp, ff], u, rho_s[pp, ff].astype(float), views
 
 

@@ -25,7 +25,6 @@ from ..grid import DirectionGrid
 from ..microfacet import half_vector
 from ..lightplane import LightTriangulation
 from ..pushpull import push_pull
-from ..render import light_geometry
 from ..sharpness import grid_resolution, lobe_widths
 from ..tables import join_tables, support_writer
 from .common import TILE_POINTS, RectifiedCapture, part_points, part_records, tiles
@@ -42,8 +41,8 @@ def measured_sharpness(capture: RectifiedCapture, spec, ok, grazing_deg: float) 
     excluded, as in eq. 11)."""
     visible = np.flatnonzero(capture.visible)
     idx = visible[:: max(1, visible.size // SHARPNESS_POINTS)]
-    wi, _ = light_geometry(capture.points[idx][:, None, :], capture.light_positions[None])
-    o = np.broadcast_to(capture.view_directions(True)[idx][:, None, :], wi.shape)
+    wi, _ = capture.light_directions(idx)
+    o = np.broadcast_to(capture.view_directions(True, idx)[:, None, :], wi.shape)
     use = np.asarray(ok[idx], bool) & (wi[..., 2] > np.cos(np.radians(grazing_deg)))
     value = np.where(use, np.asarray(spec[idx], float).mean(axis=-1) * 4.0 * wi[..., 2] * o[..., 2], 0.0)
     narrow, broad, _ = lobe_widths(half_vector(wi, o), value)
@@ -132,8 +131,8 @@ def _resample_points(capture: RectifiedCapture, grid: DirectionGrid, spec, ok, p
                      threads: int = 1) -> np.ndarray:
     """The slices of ``points`` (whole tiles) into a (len, T, F) support table, tiles on ``threads``
     threads; returns their colour."""
-    lights = LightTriangulation.from_lights(capture.light_positions)
-    footprint = LightFootprint.from_lights(capture.light_positions)
+    lights = LightTriangulation.from_lights(capture.lights)
+    footprint = LightFootprint.from_lights(capture.lights)
     directions = grid.directions.reshape(-1, 3)
     n = points.stop - points.start
     colour = np.ones((n, 3))

@@ -7,6 +7,13 @@ which ``separate`` kept out of the fit): :mod:`facetsynth.selfcheck` defines
 both subsets and the scores. Pixels clipped in a frame (hdr's ``saturated``)
 are left out of that frame's scores. Writes ``selfcheck/metrics.json`` and,
 per subset, a measured | predicted | 4 x difference picture of its worst frame.
+
+A light dome's capture (directional lights, an orthographic camera: one light
+direction per frame for every pixel) is also fitted per pixel by the models its
+users rely on today (:mod:`facetsynth.rti.fits`: Lambertian photometric stereo,
+PTM, HSH of orders 2 and 3) on the same fitting frames, and scored on the same
+subsets and pixels: ``baselines`` in the metrics; the pictures then read
+measured | facetsynth | HSH order 3 | 4 x facetsynth's difference.
 """
 
 from __future__ import annotations
@@ -22,6 +29,7 @@ from .. import manifest as manifest_io
 from ..fileio import read_frame, write_json
 from ..metrics import finite_or_none
 from ..predict import FrameRenderer, load_model
+from ..rti import fits
 from ..selfcheck import FrameScores, heldout_lights, relit_frames
 from .common import StageSettings
 from .validate import _to_png, side_by_side
@@ -64,6 +72,10 @@ def run(svbrdf: str | Path, manifest: str | Path, metrics_out: str | Path, image
     images_out.mkdir(parents=True, exist_ok=True)
     metrics: dict = {"definition": DEFINITION, "frames": len(m["frames"]), "sample_pixels": int(sample.sum()),
                      "heldout_every": settings.heldout_every, "relit_every": settings.relit_every}
+    baselines = per_pixel_baselines(m, held, subsets, sample)
+    if baselines is not None:
+        metrics["baselines"] = {kind: {name: finite_or_none(s.rel_l2) for name, s in scored.items()}
+                                for kind, (scored, _) in baselines.items()}
     for name, frames in subsets.items():
         scores, picture = FrameScores(), None
         for q in tqdm(frames, desc=f"selfcheck: {name}", unit="frame"):
@@ -71,11 +83,11 @@ def run(svbrdf: str | Path, manifest: str | Path, metrics_out: str | Path, image
             exposure = m["frames"][q]["exposures"][0]             # hdr's merged frame (time 1: radiance)
             measured, clipped = read_frame(exposure["file"])
             measured = measured / float(exposure["time"])
-            predicted = renderer.radiance(light["position"], light["intensity"])
-            diffuse = renderer.radiance(light["position"], light["intensity"], diffuse_only=True)
+            predicted = renderer.radiance(manifest_io.light_point(light), light["intensity"])
+            diffuse = renderer.radiance(manifest_io.light_point(light), light["intensity"], diffuse_only=True)
             scores.add(q, measured, predicted, diffuse, sample & ~clipped)
             if scores.worst_frame() == q:         # the worst frame so far: its images are kept
-                picture = (measured, predicted)
+                picture = (measured, predicted, None if baselines is None else baselines["hsh3"][1](q))
         psnr = np.asarray(scores.psnr_db)
         lit = psnr[np.isfinite(psnr)]
         worst = scores.worst_frame()
@@ -85,14 +97,16 @@ def run(svbrdf: str | Path, manifest: str | Path, metrics_out: str | Path, image
                          "frame_psnr_worst_db": finite_or_none(lit.min()) if lit.size else None,
                          "worst_frame": worst}
         if picture is not None:
-            measured, predicted = picture
+            measured, predicted, hsh = picture
             peak = float(measured[sample].max()) if sample.any() else 1.0
-            picture = side_by_side(measured, predicted, None, peak)
+            picture = side_by_side(measured, predicted, hsh, peak)
             zoom = max(1, -(-PICTURE_HEIGHT // picture.shape[0]))    # small cameras: pixels shown zoom x zoom
             _to_png(images_out / f"{name}_worst.png", picture.repeat(zoom, axis=0).repeat(zoom, axis=1))
         log.info("%s: %d frames, rel L2 %s, specular %s, frame PSNR median %s dB, worst %s dB (frame %s)", name,
                  len(frames), metrics[name]["rel_l2"], metrics[name]["specular_rel_l2"],
                  metrics[name]["frame_psnr_median_db"], metrics[name]["frame_psnr_worst_db"], worst)
+    for kind, scores in metrics.get("baselines", {}).items():
+        log.info("per-pixel %s: relit %s, held-out %s", kind, scores["relit"], scores["heldout"])
     poor = (metrics["heldout"]["rel_l2"] or 0.0) > POOR_FIT_REL_L2
     metrics["poor_fit"] = bool(poor)
     if poor:
@@ -100,3 +114,33 @@ def run(svbrdf: str | Path, manifest: str | Path, metrics_out: str | Path, image
                     "predict this capture's own lights", metrics["heldout"]["rel_l2"], POOR_FIT_REL_L2)
     write_json(metrics_out, metrics)
     return metrics
+
+
+def per_pixel_baselines(m: dict, held: np.ndarray, subsets: dict[str, np.ndarray], sample: np.ndarray):
+    """Per kind of :data:`facetsynth.rti.fits.KINDS`: ({subset: FrameScores}, frame q -> predicted image), the
+    per-pixel fit on the frames not ``held`` out, scored as the SVBRDF is; None unless every light is
+    directional and the camera orthographic (elsewhere a frame has no one light direction)."""
+    lights = manifest_io.lights(m["frames"])
+    if np.any(lights[:, 3] != 0) or not manifest_io.camera(m).orthographic:
+        return None
+    frames = [read_frame(f["exposures"][0]["file"]) for f in m["frames"]]
+    measured = np.stack([rgb / float(f["exposures"][0]["time"]) for (rgb, _), f in zip(frames, m["frames"])])
+    measured /= manifest_io.light_intensities(m["frames"])[:, None, None, :]   # to unit irradiance
+    directions, training = lights[:, :3], np.flatnonzero(~held)
+    out = {}
+    for kind in fits.KINDS:
+        coefficients = fits.fit(kind, directions[training], measured[training])
+
+        def predict(q: int, coefficients=coefficients, kind=kind) -> np.ndarray:
+            intensity = np.asarray(m["frames"][q]["light"]["intensity"], float)
+            return fits.relight(kind, coefficients, directions[q:q + 1])[0] * intensity
+
+        scored = {}
+        for name, subset in subsets.items():
+            scored[name] = FrameScores()
+            for q in subset:
+                clipped = frames[q][1]
+                truth = measured[q] * np.asarray(m["frames"][q]["light"]["intensity"], float)
+                scored[name].add(q, truth, predict(q), np.zeros_like(truth), sample & ~clipped)
+        out[kind] = (scored, predict)
+    return out

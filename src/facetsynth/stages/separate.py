@@ -1,16 +1,28 @@
-"""Stage ``separate``: BRDF samples (eq. 8), diffuse kd (eq. 9), the specular residual (paper 002 sec. 4)."""
+"""Stage ``separate``: shading normals, BRDF samples (eq. 8), diffuse kd (eq. 9), the specular residual (paper
+002 sec. 4).
+
+Real samples have relief. Each point's shading normal n(x) comes first, by robust photometric stereo on the
+diffuse part (:func:`facetsynth.normals.estimate`: highlights and shadows trimmed); eq. 8 is then read in the
+point's frame, rho = I |P - x|^2 / (L n(x) . i), and so is everything after: the stage writes rectify's
+geometry with the normals (``separate/geometry.json``), which every later stage reads
+(:class:`~facetsynth.stages.common.RectifiedCapture`). Cast shadows, samples far darker than the diffuse
+part predicts, are invalid: masked, not fitted.
+"""
 
 from __future__ import annotations
 
 import logging
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from ..fileio import HALF, as_half, atomic_path, read_frame, write_exr, write_json
+from ..fileio import HALF, as_half, atomic_path, read_frame, read_json, write_exr, write_json, write_npy
 from ..frames import imap, map_frames
-from ..render import light_geometry
+from ..normals import FLAT, estimate as estimate_normals
+from ..microfacet import half_vector
+from ..render import light_geometry, towards
 from ..selfcheck import heldout_lights
 from ..separation import brdf_samples, diffuse_level, specular_residual
 from .common import RectifiedCapture, StageSettings, flag_degenerate, tiles
@@ -26,6 +38,20 @@ SIGNAL_RATIO = 0.5
 # a diffuse-only model is all the capture supports. Black markers, dust and dead pixels stay below it.
 MIN_SIGNAL_FRACTION = 0.01
 FRAME_BLOCK = 32    # frames read before their samples are written
+# A sample whose luminance is below CAST_SHADOW x what the point's diffuse part predicts, (kd/pi) n . i, lies in a
+# cast shadow of the relief (or is occluded): invalid. Sensor noise and the darkest diffuse samples stay above it.
+CAST_SHADOW = 0.5
+# Photometric stereo leaves out the samples whose half vector lies within LOBE_DEG of the point's normal: the
+# specular lobe's core. Trimming alone misses a broad lobe's shoulder, and under an oblique camera that shoulder
+# lies on one side: it tilted a flat GGX point (alpha 0.25) by 2-3 deg. Twice: about +z, then about the estimate.
+LOBE_DEG = 25.0
+# A sample whose shading normals tilt less than this (deg) at their 95th percentile is flat: its normals are +z.
+# Estimation noise and the leftover bias of a lobe's shoulder stay below it on the virtual scenes (flat); the
+# real reliefs of docs/accuracy.md tilt by 10-30 deg.
+FLAT_TILT_P95_DEG = 3.0
+MIN_KD, MIN_KD_SHARE = 0.01, 0.1   # diffuse_enough
+# n . i below this: the light grazes the point's own facet; eq. 8 would divide by ~0 (invalid, as below the plane)
+MIN_COS = 1e-3
 
 
 @dataclass(frozen=True)
@@ -36,18 +62,22 @@ class Settings(StageSettings):
                               # mean (0: eq. 9's minimum, per channel)
     heldout_every: int = 0    # config selfcheck.heldout_every: every k-th frame's samples are invalid, so that no
                               # later stage sees those lights (facetsynth.selfcheck.heldout_lights; 0: none)
+    shading_normals: bool = True   # a normal per point (photometric stereo); False: the plane's +z everywhere
 
 
 def run(geometry: str | Path, kd_out: str | Path, specular_out: str | Path, valid_out: str | Path,
-        metrics_out: str | Path, settings: Settings = Settings(), threads: int = 1) -> None:
+        metrics_out: str | Path, settings: Settings = Settings(), threads: int = 1, *,
+        geometry_out: str | Path | None = None, normals_out: str | Path | None = None) -> None:
     """Per point and light: rho by eq. 8, kd = pi rho_d by eq. 9 (:func:`~facetsynth.separation.diffuse_level`),
     rho~_s = rho - rho_d.
 
     Writes ``kd`` (EXR on the rectified grid), the specular residual (P, F, 3) in half floats
     (:func:`~facetsynth.fileio.as_half`) and the sample validity (P, F) as memory-mappable .npy
     (frames are streamed in; memory does not grow with the sample size).
-    Invalid samples: saturated, a point outside the camera's view, or a light held out for the self-check
-    (``settings.heldout_every``). Frames are read on ``threads`` threads.
+    Invalid samples: saturated, a point outside the camera's view, a light held out for the self-check
+    (``settings.heldout_every``), a light at or behind the point's facet, or a cast shadow (CAST_SHADOW).
+    Frames are read on ``threads`` threads. ``normals_out``: the shading normals (P, 3) float32 .npy;
+    ``geometry_out``: rectify's ``geometry`` with them (the later stages' geometry).
     """
     capture = RectifiedCapture.load(geometry)
     n_points, n_frames = capture.n_points, len(capture.frame_files)
@@ -56,9 +86,13 @@ def run(geometry: str | Path, kd_out: str | Path, specular_out: str | Path, vali
         # eq. 9's kd is not rounded to half floats; the residual goes out in half floats
         scratch = tmp_spec.with_name(tmp_spec.name + ".eq8.npy")
         try:
-            kd, signal = _separate(capture, settings, threads, scratch, tmp_spec, tmp_valid)
+            kd, signal, normals = _separate(capture, settings, threads, scratch, tmp_spec, tmp_valid)
         finally:
             scratch.unlink(missing_ok=True)
+    if normals_out is not None:
+        write_npy(normals_out, normals.astype(np.float32))
+    if geometry_out is not None:
+        _write_geometry(geometry, geometry_out, normals_out)
     write_exr(kd_out, {"RGB": kd.reshape(capture.grid.rows, capture.grid.cols, 3)},
               {"quantity": "kd (diffuse albedo), paper 002 eq. 9" + (
                   f" (the mean of the lowest {100 * settings.lowest:g} % of the qualifying samples)"
@@ -68,7 +102,8 @@ def run(geometry: str | Path, kd_out: str | Path, specular_out: str | Path, vali
     metrics = {"ground_truth": capture.truth_scene is not None, "points": n_points, "frames": n_frames,
                "threshold": settings.threshold, "lowest": settings.lowest,
                "heldout_frames": int(heldout_lights(n_frames, settings.heldout_every).sum()),
-               "points_without_diffuse_estimate": dark}
+               "points_without_diffuse_estimate": dark, "shading_normals": settings.shading_normals,
+               **_normal_metrics(normals, capture)}
     lit = capture.visible & (kd.sum(axis=1) > 0)
     metrics["specular_signal_fraction"] = float(signal[lit].mean()) if lit.any() else 0.0
     if metrics["specular_signal_fraction"] < MIN_SIGNAL_FRACTION:
@@ -90,7 +125,7 @@ def run(geometry: str | Path, kd_out: str | Path, specular_out: str | Path, vali
 def _separate(capture: RectifiedCapture, settings: Settings, threads: int, scratch: Path, specular_out: Path,
               valid_out: Path) -> tuple[np.ndarray, np.ndarray]:
     """Eq. 8 frame by frame into ``scratch``, then eq. 9 tile by tile into the residual and validity files;
-    returns kd (P, 3) and which points show specular signal (P,)."""
+    returns kd (P, 3), which points show specular signal (P,) and the shading normals (P, 3)."""
     n_points, n_frames = capture.n_points, len(capture.frame_files)
     points = capture.points
     held = heldout_lights(n_frames, settings.heldout_every)
@@ -100,7 +135,7 @@ def _separate(capture: RectifiedCapture, settings: Settings, threads: int, scrat
     def frame_samples(q: int) -> tuple[np.ndarray, np.ndarray]:
         radiance, saturated = read_frame(capture.frame_files[q])
         sample, _ = brdf_samples(radiance.reshape(-1, 1, 3), points,
-                                 capture.light_positions[q:q + 1], capture.light_intensities[q:q + 1])
+                                 capture.lights[q:q + 1], capture.light_intensities[q:q + 1])
         return sample[:, 0].astype(np.float32), capture.visible & ~saturated.ravel() & ~held[q]
 
     # written FRAME_BLOCK frames at a time as one block of columns: a frame alone would touch every
@@ -117,26 +152,114 @@ def _separate(capture: RectifiedCapture, settings: Settings, threads: int, scrat
     valid.flush()
     kd = np.zeros((n_points, 3))
     signal = np.zeros(n_points, bool)
+    normals = np.tile(FLAT, (n_points, 1))
+    albedo = np.zeros(n_points)
+
+    def normal_tile(tile: slice) -> None:
+        wi, _ = light_geometry(points[tile][:, None, :], capture.lights[None])
+        b = np.asarray(rho[tile], float) * np.clip(wi[..., 2], 0.0, None)[..., None]
+        normals[tile], albedo[tile] = photometric_normals(b, wi, towards(points[tile], capture.view_point),
+                                                          np.asarray(valid[tile]))
+
+    if settings.shading_normals:
+        map_frames(normal_tile, list(tiles(n_points)), threads, "separate: shading normals", unit="tile")
+        normals[:], relief = relief_normals(normals, capture.visible & diffuse_enough(albedo))
+        log.info("shading normals: %s", relief)
     residuals = np.lib.format.open_memmap(specular_out, mode="w+", dtype=HALF, shape=(n_points, n_frames, 3))
 
     def separate_tile(tile: slice) -> None:
-        rho_tile = np.asarray(rho[tile], float)
-        radiance = _radiance(rho_tile, points[tile], capture)
-        rho_d = diffuse_level(rho_tile, radiance, valid[tile], settings.threshold, settings.lowest)
+        rho_tile, ok = np.asarray(rho[tile], float), np.asarray(valid[tile])
+        wi, r2 = light_geometry(points[tile][:, None, :], capture.lights[None])
+        if settings.shading_normals:
+            rho_tile, ok = _in_shading_frame(rho_tile, wi, normals[tile], albedo[tile], ok)
+            valid[tile] = ok
+        cos = np.einsum("pfk,pk->pf", wi, normals[tile])
+        radiance = rho_tile * (np.clip(cos, 0, None) / r2)[..., None] * capture.light_intensities[None]
+        rho_d = diffuse_level(rho_tile, radiance, ok, settings.threshold, settings.lowest)
         kd[tile] = np.pi * rho_d
         residual = specular_residual(rho_tile, rho_d)
         residuals[tile] = as_half(residual)
-        peak = np.where(valid[tile], residual.mean(axis=-1), 0.0).max(axis=1, initial=0.0)
+        peak = np.where(ok, residual.mean(axis=-1), 0.0).max(axis=1, initial=0.0)
         diffuse = rho_d.mean(axis=-1)
         signal[tile] = (diffuse > 0) & (peak >= SIGNAL_RATIO * diffuse)
 
     map_frames(separate_tile, list(tiles(n_points)), threads, "separate: eq. 9", unit="tile")
     residuals.flush()
     del rho, valid, residuals
-    return kd, signal
+    return kd, signal, normals
 
 
-def _radiance(rho: np.ndarray, points: np.ndarray, capture: RectifiedCapture) -> np.ndarray:
-    """I = rho (n . i) L / |P - x|^2: eq. 8 read forwards, for the threshold of eq. 9."""
-    wi, r2 = light_geometry(points[:, None, :], capture.light_positions[None])
-    return rho * (np.clip(wi[..., 2], 0, None) / r2)[..., None] * capture.light_intensities[None]
+def photometric_normals(b: np.ndarray, wi: np.ndarray, view: np.ndarray,
+                        valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(normals (p, 3), luminance albedo kd/pi (p,)) of points from their irradiance-normalised radiance
+    b = rho (+z . i) (p, F, 3) (b = (kd/pi) n . i on the diffuse part) by robust photometric stereo
+    (:func:`facetsynth.normals.estimate`) away from the specular lobe: LOBE_DEG about the normal, +z first,
+    then the estimate (``view`` (p, 3) the points' o)."""
+    h = half_vector(wi, view[:, None, :])
+    normal = np.broadcast_to(FLAT, view.shape)
+    for _ in range(2):
+        off_lobe = np.einsum("pfk,pk->pf", h, normal) < np.cos(np.radians(LOBE_DEG))
+        found = estimate_normals(b, wi, valid & off_lobe)
+        normal = found.normal
+    return found.normal, found.albedo.mean(axis=-1)
+
+
+def diffuse_enough(albedo: np.ndarray) -> np.ndarray:
+    """(P,) whether a point's diffuse part is strong enough to tell its normal: luminance kd at least
+    MIN_KD, and MIN_KD_SHARE of the sample's 90th percentile (a metal's or a black marker's normal is
+    the specular tail's and the noise's, not the surface's)."""
+    kd = np.pi * np.asarray(albedo, float)
+    return (kd >= MIN_KD) & (kd >= MIN_KD_SHARE * np.percentile(kd, 90))
+
+
+def relief_normals(normals: np.ndarray, trusted: np.ndarray) -> tuple[np.ndarray, str]:
+    """The shading normals of a relief on the plane, and what was done. Points not ``trusted`` (off the
+    sample, too little diffuse) get +z. The sample's mean plane is z = 0, so the trusted points' slopes
+    (-n_x/n_z, -n_y/n_z) have median 0: a common tilt is a bias of the estimate (a lobe's shoulder, an
+    uneven dome), removed. Then, when FLAT_TILT_P95_DEG exceeds the 95th percentile of the tilts, the
+    sample is flat: +z everywhere (a model only as complex as the scene)."""
+    visible = trusted
+    normals = np.where(trusted[:, None], normals, FLAT)
+    slope = -normals[:, :2] / normals[:, 2:]
+    bias = np.median(slope[visible], axis=0) if visible.any() else np.zeros(2)
+    slope[trusted] -= bias
+    normals = np.concatenate([-slope, np.ones((len(slope), 1))], axis=1)
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    tilt = np.degrees(np.arccos(np.clip(normals[visible, 2], -1.0, 1.0)))
+    p95 = float(np.percentile(tilt, 95)) if tilt.size else 0.0
+    removed = f"common tilt {np.degrees(np.arctan(np.hypot(*bias))):.2f} deg removed"
+    if p95 < FLAT_TILT_P95_DEG:
+        return np.tile(FLAT, (len(normals), 1)), f"flat ({removed}; 95 % of tilts below {p95:.2f} deg < " \
+                                                   f"{FLAT_TILT_P95_DEG:g})"
+    return normals, f"relief ({removed}; 95th percentile of tilts {p95:.1f} deg)"
+
+
+def _in_shading_frame(rho: np.ndarray, wi: np.ndarray, normals: np.ndarray, albedo: np.ndarray,
+                      valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. 8's samples of points (p, F, 3), read with the plane's normal, re-read in each point's shading frame,
+    rho = b / (n . i), b = rho (+z . i); and their validity: samples at or behind the point's facet
+    (n . i < MIN_COS) and in cast shadows (luminance below CAST_SHADOW x the diffuse part's albedo n . i) are
+    invalid."""
+    b = rho * np.clip(wi[..., 2], 0.0, None)[..., None]
+    cos = np.einsum("pfk,pk->pf", wi, normals)
+    valid = valid & (cos > MIN_COS) & (b.mean(axis=-1) >= CAST_SHADOW * albedo[:, None] * cos)
+    return np.where(valid[..., None], b / np.where(valid, cos, 1.0)[..., None], 0.0), valid
+
+
+def _write_geometry(geometry: str | Path, geometry_out: str | Path, normals_out: str | Path) -> None:
+    """Rectify's geometry file with the shading normals, its file names relative to ``geometry_out``'s folder."""
+    g, source, folder = read_json(geometry), Path(geometry).parent, Path(geometry_out).parent
+    for frame in g["frames"]:
+        frame["file"] = os.path.relpath(source / frame["file"], folder)
+    if "scene" in g.get("truth", {}):
+        g["truth"]["scene"] = os.path.relpath(source / g["truth"]["scene"], folder)
+    g["normals"] = os.path.relpath(normals_out, folder)
+    write_json(geometry_out, g)
+
+
+def _normal_metrics(normals: np.ndarray, capture: RectifiedCapture) -> dict:
+    """The shading normals' tilt from the plane (deg): median and 99th percentile over the visible points."""
+    tilt = np.degrees(np.arccos(np.clip(normals[capture.visible, 2], -1.0, 1.0)))
+    if tilt.size == 0:
+        return {}
+    return {"normal_tilt_median_deg": float(np.median(tilt)), "normal_tilt_p99_deg": float(np.percentile(tilt, 99))}

@@ -142,7 +142,7 @@ def diffuse_truth(scene: Scene, camera, lights: np.ndarray, intensities: np.ndar
     out = np.zeros((len(lights), h, w, 3), np.float32)
     image = np.zeros(on.shape + (3,))
     for q, (light, intensity) in enumerate(zip(lights, intensities)):
-        image[on] = radiance(points, lambda wi, wo: kd_over_pi, light, intensity, camera.centre)
+        image[on] = radiance(points, lambda wi, wo: kd_over_pi, light, intensity, camera.view_point)
         out[q] = image.reshape(h, s, w, s, 3).mean(axis=(1, 3))
     return out, analytic, region
 
@@ -156,7 +156,7 @@ def region_scores(truth: np.ndarray, prediction: np.ndarray, mask: np.ndarray, r
 
 
 def true_rig(m: dict[str, Any]) -> tuple[Any, np.ndarray, np.ndarray]:
-    """(camera, light positions (F, 3), intensities (F, 3)) the held-out truth was rendered with.
+    """(camera, homogeneous lights (F, 4), intensities (F, 3)) the held-out truth was rendered with.
 
     The manifest's calibrated values, or, when the virtual rig had a
     calibration error (``truth/calibration.json``), the true ones: the camera
@@ -166,7 +166,7 @@ def true_rig(m: dict[str, Any]) -> tuple[Any, np.ndarray, np.ndarray]:
     from ..camera import Camera
     from ..fileio import read_json
     camera = manifest_io.camera(m)
-    lights, intensities = manifest_io.light_positions(m), manifest_io.light_intensities(m)
+    lights, intensities = manifest_io.lights(m["frames"]), manifest_io.light_intensities(m["frames"])
     record = m.get("truth", {}).get("calibration")
     if record is None:
         return camera, lights, intensities
@@ -174,7 +174,7 @@ def true_rig(m: dict[str, Any]) -> tuple[Any, np.ndarray, np.ndarray]:
     camera = Camera(camera.width, camera.height, camera.K, np.asarray(cal["camera"]["R"], float),
                     np.asarray(cal["camera"]["t"], float), camera.distortion)
     led = np.array([f["led"] for f in m["frames"]], int)
-    lights = lights + np.asarray(cal["led_offset_m"], float)[led]
+    lights[:, :3] += np.asarray(cal["led_offset_m"], float)[led]
     intensities = intensities * np.asarray(cal["led_intensity_factor"], float)[led]
     return camera, lights, intensities
 
@@ -240,7 +240,7 @@ def run(svbrdf: str | Path, ward: str | Path | None, heldout: dict[str, str | Pa
             names = [r["name"] for r in scene.regions]
         ours = image_scores(truth, predictions["ours"], mask)
         record = {"frames": len(m["frames"]), "sample_pixels": int(mask.sum()),
-                  "camera_centre": manifest_io.camera(m).centre.tolist(),
+                  "camera_view_point": manifest_io.camera(m).view_point.tolist(),
                   "heldout_psnr_db": ours["psnr_db"], "heldout_rmse": ours["rmse"],
                   "heldout_rmse_normalised": ours["rmse_normalised"], "heldout_ssim": ours["ssim"],
                   "peak_radiance": ours["peak"],
