@@ -224,3 +224,60 @@ def test_bench_scale_records_a_run_before_pruning_it(tmp_path, repo):
     by_stage = {r["stage"]: r for r in again}
     assert by_stage["partial_ndf"]["bytes_written"] == 1000 * (bench.FIT_STAGES.index("partial_ndf") + 1) + 2
     assert by_stage["read_frames"]["points"] == 64 * 64 and "total" in by_stage
+
+
+def test_real_rows_and_table_from_a_results_tree(tmp_path):
+    """make bench-real's row: facetsynth and the per-pixel fits' relative L2 from the selfcheck's metrics, the
+    fit time over FIT_STAGES (capture and hdr included; a scattered stage counts its slowest part), the peak
+    memory, whether facetsynth <= HSH3 on both subsets; and the Markdown table of the rows."""
+    results = tmp_path / "results"
+    root = results / "rti-leaf"
+    for k, stage in enumerate(bench.FIT_STAGES):
+        write_benchmark(root / "benchmarks" / f"{stage}.tsv", 1.0 + k, 0.5 + k, 100.0 * (k + 1))
+    write_benchmark(root / "benchmarks/resample/1-of-2.tsv", 20.0, 19.0, 3000.0)
+    write_benchmark(root / "benchmarks/resample/2-of-2.tsv", 30.0, 29.0, 2500.0)
+    write_benchmark(root / "benchmarks/selfcheck.tsv", 500.0, 500.0, 9999.0)     # not a fit stage
+    scores = {"lambert": (0.30, 0.32), "ptm": (0.20, 0.25), "hsh2": (0.15, 0.24), "hsh3": (0.12, 0.26)}
+    metrics = {"frames": 48, "relit": {"frames": 42, "rel_l2": 0.11}, "heldout": {"frames": 6, "rel_l2": 0.21},
+               "baselines": {m: {"relit": r, "heldout": h} for m, (r, h) in scores.items()}}
+    (root / "selfcheck").mkdir()
+    (root / "selfcheck/metrics.json").write_text(json.dumps(metrics))
+
+    row = bench.real_row(results, "rti-leaf")
+    assert list(row) == bench.REAL_COLUMNS
+    assert (row["capture"], row["frames"], row["relit_frames"], row["heldout_frames"]) == ("rti-leaf", 48, 42, 6)
+    assert (row["facetsynth_relit"], row["facetsynth_heldout"]) == (0.11, 0.21)
+    assert (row["ptm_relit"], row["hsh3_heldout"]) == (0.20, 0.26)
+    stages = {stage: 1.0 + k for k, stage in enumerate(bench.FIT_STAGES)}
+    assert row["fit_s"] == pytest.approx(sum(stages.values()) + 30.0)    # resample: join + its slowest part
+    assert row["rectify_to_refine_s"] == pytest.approx(row["fit_s"] - stages["capture"] - stages["hdr"])
+    assert row["peak_mem_mb"] == 3000.0         # a resample part; selfcheck left out
+    assert row["le_hsh3"] is True
+
+    metrics["relit"]["rel_l2"] = 0.13           # worse than HSH3 on the fitting lights only
+    del metrics["baselines"]["lambert"]         # a fit the metrics lack stays empty
+    (root / "selfcheck/metrics.json").write_text(json.dumps(metrics))
+    (root / "benchmarks/refine.tsv").unlink()   # an unfinished run: no fit time
+    worse = bench.real_row(results, "rti-leaf")
+    assert worse["le_hsh3"] is False and worse["lambert_relit"] is None and worse["fit_s"] is None
+    assert bench.real_row(results, "missing")["le_hsh3"] is None
+
+    lines = bench.real_table([row, worse]).splitlines()
+    assert len(lines) == 4 and all(line.startswith("| ") or line.startswith("|-") for line in lines)
+    assert all(line.count("|") == lines[0].count("|") for line in lines[1:])
+    assert "| rti-leaf | 42 / 6 | 0.110 / 0.210 | 0.300 / 0.320 |" in lines[2]
+    assert lines[2].endswith("| 3000 | yes |")
+    assert "| - / - |" in lines[3] and lines[3].endswith("| - | 3000 | no: fitting |")
+    path = bench.write_csv([row, worse], tmp_path / "table.csv", bench.REAL_COLUMNS)
+    assert path.read_text().splitlines()[0] == ",".join(bench.REAL_COLUMNS)
+
+
+def test_bench_real_names_a_missing_photo_folder(tmp_path, repo):
+    """Without the photos (../shared/data/rti on this machine only) the script stops before any run, naming
+    the folder that is missing."""
+    sheet = tmp_path / "samples.tsv"
+    sheet.write_text(f"sample\tsource\tpath\nrti-leaf\tlp\t{tmp_path}/no-such/rti/item7/dirs.lp\n")
+    done = subprocess.run([sys.executable, str(repo / "workflow/scripts/bench_real.py"), "--samples", str(sheet),
+                           "--out", str(tmp_path / "out")], capture_output=True, text=True)
+    assert done.returncode != 0
+    assert f"{tmp_path}/no-such does not exist" in done.stderr and not (tmp_path / "out").exists()

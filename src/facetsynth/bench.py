@@ -322,3 +322,69 @@ def plot(rows: Sequence[dict], path: str | Path, title: str, presets: Sequence[s
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
+
+
+# --- real light-dome captures against the per-pixel RTI fits (make bench-real, issue 35) ----------------
+
+#: facetsynth and the per-pixel fits the selfcheck scores on a light dome's capture (its ``baselines``).
+REAL_METHODS = ("facetsynth", "lambert", "ptm", "hsh2", "hsh3")
+REAL_SUBSETS = ("relit", "heldout")
+REAL_COLUMNS = (["capture", "frames", "relit_frames", "heldout_frames"]
+                + [f"{m}_{s}" for m in REAL_METHODS for s in REAL_SUBSETS]
+                + ["fit_s", "rectify_to_refine_s", "peak_mem_mb", "le_hsh3"])
+
+
+def real_row(results: str | Path, capture: str) -> dict:
+    """One row of bench-real's table from ``results/{capture}/`` (a light dome's run up to selfcheck):
+    the relative L2 on the fitting lights (``relit``) and the held-out ones (``heldout``) of facetsynth and
+    of each per-pixel fit (REAL_METHODS; None where the metrics lack one); ``fit_s`` the wall seconds of
+    FIT_STAGES, capture and hdr (reading and linearising the photos) included, ``rectify_to_refine_s``
+    those of PRESET_STAGES, both None when a stage has no benchmark, each stage's wall as ``stage_cost``
+    counts it (scatter parts: the slowest); ``peak_mem_mb`` the largest max_rss over FIT_STAGES; and
+    ``le_hsh3`` whether facetsynth's error is at most HSH order 3's on both subsets (None if one is missing)."""
+    root = Path(results) / capture
+    metrics = _json(root / "selfcheck/metrics.json")
+    row: dict = {"capture": capture, "frames": metrics.get("frames")}
+    for subset in REAL_SUBSETS:
+        row[f"{subset}_frames"] = (metrics.get(subset) or {}).get("frames")
+        row[f"facetsynth_{subset}"] = (metrics.get(subset) or {}).get("rel_l2")
+        for method in REAL_METHODS[1:]:
+            row[f"{method}_{subset}"] = ((metrics.get("baselines") or {}).get(method) or {}).get(subset)
+    costs = {stage: stage_cost(root, stage) for stage in FIT_STAGES}
+    walls = {stage: None if cost is None else cost["wall_s"] for stage, cost in costs.items()}
+    row["fit_s"] = None if None in walls.values() else sum(walls.values())
+    preset = [walls[stage] for stage in PRESET_STAGES]
+    row["rectify_to_refine_s"] = None if None in preset else sum(preset)
+    peaks = [cost["max_rss_mb"] for cost in costs.values() if cost is not None and cost["max_rss_mb"] is not None]
+    row["peak_mem_mb"] = max(peaks) if peaks else None
+    pairs = [(row[f"facetsynth_{s}"], row[f"hsh3_{s}"]) for s in REAL_SUBSETS]
+    row["le_hsh3"] = None if any(a is None or b is None for a, b in pairs) else all(a <= b for a, b in pairs)
+    return {column: row.get(column) for column in REAL_COLUMNS}
+
+
+def real_table(rows: Sequence[dict]) -> str:
+    """bench-real's rows as a Markdown table: per capture, relative L2 'fitting / held-out' of each method
+    (3 decimals), the fit time (s), the peak memory (MB) and whether facetsynth <= HSH3 on both subsets
+    ('no: relit, held-out' names where it is not)."""
+    def num(value, spec):
+        return "-" if value is None else format(value, spec)
+
+    head = (["capture", "lights (fit / held-out)"] + [f"{m} rel. L2 (fit / held-out)" for m in REAL_METHODS]
+            + ["fit s (capture..refine)", "peak MB", "facetsynth <= hsh3"])
+    lines = ["| " + " | ".join(head) + " |", "|" + "|".join(["---"] * 2 + ["---:"] * (len(head) - 3) + ["---"]) + "|"]
+    for row in rows:
+        fitted = None if row.get("frames") is None or row.get("heldout_frames") is None else \
+            row["frames"] - row["heldout_frames"]
+        cells = [str(row["capture"]), f"{num(fitted, 'd')} / {num(row.get('heldout_frames'), 'd')}"]
+        cells += [f"{num(row.get(f'{m}_relit'), '.3f')} / {num(row.get(f'{m}_heldout'), '.3f')}" for m in REAL_METHODS]
+        cells += [num(row.get("fit_s"), ".0f"), num(row.get("peak_mem_mb"), ".0f")]
+        if row.get("le_hsh3") is None:
+            cells.append("-")
+        elif row["le_hsh3"]:
+            cells.append("yes")
+        else:
+            worse = [name for s, name in zip(REAL_SUBSETS, ("fitting", "held-out"))
+                     if row[f"facetsynth_{s}"] > row[f"hsh3_{s}"]]
+            cells.append("no: " + ", ".join(worse))
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"

@@ -141,6 +141,7 @@ rule selfcheck:
         svbrdf="results/{sample}/svbrdf",
         manifest="results/{sample}/hdr/manifest.json",
         frames="results/{sample}/hdr/frames",
+        geometry="results/{sample}/separate/geometry.json",   # the lights' intensities as the fit saw them
     output:
         metrics="results/{sample}/selfcheck/metrics.json",
         images=report(directory("results/{sample}/selfcheck/images"), patterns=["{subset}_worst.png"],

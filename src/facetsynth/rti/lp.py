@@ -42,6 +42,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..fileio import read_yaml
+from ..transfer import parse as parse_transfer
 
 HORIZON_TOLERANCE = 0.05
 """Lights calibrated this far below the horizon (z of the unit direction, about 3 deg) are taken as
@@ -72,7 +73,7 @@ def read(path: str | Path) -> tuple[list[str], np.ndarray]:
     if not numbered:
         raise InputError(path, "empty light file: expected the number of lights on line 1")
     first, count = numbered[0]
-    if not count.isdigit() or int(count) == 0:
+    if not count.isdecimal() or int(count) == 0:    # not isdigit: '²' is a digit that int() refuses
         raise InputError(path, f"line {first}: expected the number of lights (a positive integer), got {count!r:.40}")
     entries = numbered[1:]
     if len(entries) != int(count):
@@ -98,7 +99,7 @@ def _direction(path: Path, number: int, line: str) -> list[float]:
         d = [float(v) for v in line.rsplit(None, 3)[1:]]
     except ValueError:
         raise InputError(path, f"line {number}: the direction must be three numbers, got {line!r:.60}") from None
-    norm = math.sqrt(sum(v * v for v in d)) if all(map(math.isfinite, d)) else float("nan")
+    norm = math.hypot(*d) if all(map(math.isfinite, d)) else float("nan")   # hypot: no overflow of v * v
     if not norm > 1e-9:
         raise InputError(path, f"line {number}: the direction {d} is not a finite, nonzero vector")
     d = [v / norm for v in d]
@@ -118,8 +119,9 @@ def side_file(path: str | Path) -> Path:
 
 
 def options(path: str | Path, n_lights: int) -> dict[str, Any]:
-    """The side file's settings (module docstring), {} without one; InputError for unknown keys or a wrong
-    number of intensities."""
+    """The side file's settings (module docstring), {} without one; InputError naming the side file for
+    unknown keys, intensities that are not n_lights x 3 finite numbers >= 0, a pixel size that is not a
+    finite number > 0, a black level that is not a number in [0, 1), or a transfer that is not one."""
     side = side_file(path)
     if not side.is_file():
         return {}
@@ -128,11 +130,29 @@ def options(path: str | Path, n_lights: int) -> dict[str, Any]:
         raise InputError(side, f"expected a mapping of {sorted(SIDE_KEYS)}, found {type(found).__name__}")
     unknown = set(found) - SIDE_KEYS
     if unknown:
-        raise InputError(side, f"unknown key(s) {sorted(unknown)}; known: {sorted(SIDE_KEYS)}")
+        raise InputError(side, f"unknown key(s) {sorted(map(str, unknown))}; known: {sorted(SIDE_KEYS)}")
     intensities = found.get("intensities")
-    if intensities is not None and np.shape(intensities) != (n_lights, 3):
-        raise InputError(side, f"intensities: expected one [r, g, b] per light ({n_lights} x 3), got shape "
-                               f"{np.shape(intensities)}")
+    if intensities is not None:
+        try:
+            values = np.asarray(intensities, float)
+        except (TypeError, ValueError):      # ragged, or not numbers
+            values = None
+        if values is None or values.shape != (n_lights, 3):
+            got = f"shape {values.shape}" if values is not None else f"{str(intensities)!r:.60}"
+            raise InputError(side, f"intensities: expected one [r, g, b] per light ({n_lights} x 3), got {got}")
+        if not (np.isfinite(values).all() and (values >= 0).all()):
+            raise InputError(side, "intensities: every value must be a finite number >= 0")
+    for key, low, high in (("pixel_size_mm", 0.0, math.inf), ("black_level", 0.0, 1.0)):
+        value = found.get(key)
+        if key in found and not (isinstance(value, (int, float)) and not isinstance(value, bool)
+                                 and (low < value < high or key == "black_level" and value == low)):
+            limits = "a finite number > 0" if key == "pixel_size_mm" else "a number in [0, 1)"
+            raise InputError(side, f"{key} must be {limits}, got {str(value)!r:.40}")
+    if "transfer" in found:
+        try:
+            parse_transfer(found["transfer"])
+        except (TypeError, ValueError) as exc:
+            raise InputError(side, f"transfer: {exc}") from None
     return found
 
 

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import manifest as manifest_io
+from ..errors import InputError
 from ..fileio import read_json
 from ..normals import shading_frames, to_local
 from ..render import light_geometry, towards
@@ -48,6 +49,9 @@ class RectifiedCapture:
     def load(cls, path: str | Path) -> "RectifiedCapture":
         path = Path(path)
         g = read_json(path)
+        if "view_point" not in g:
+            raise InputError(path, "a geometry file of an older facetsynth (no 'view_point'): re-run from rectify "
+                                   "(snakemake --forcerun rectify)")
         truth = g.get("truth", {}).get("scene")
         return cls(folder=path.parent, grid=PlaneGrid.from_dict(g["grid"]),
                    visible=np.asarray(g["visible"], bool).ravel(),

@@ -18,6 +18,7 @@ measured | facetsynth | HSH order 3 | 4 x facetsynth's difference.
 
 from __future__ import annotations
 
+import copy
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,7 +27,7 @@ import numpy as np
 from tqdm import tqdm
 
 from .. import manifest as manifest_io
-from ..fileio import read_frame, write_json
+from ..fileio import read_frame, read_json, write_json
 from ..metrics import finite_or_none
 from ..predict import FrameRenderer, load_model
 from ..rti import fits
@@ -60,10 +61,16 @@ class Settings(StageSettings):
 
 
 def run(svbrdf: str | Path, manifest: str | Path, metrics_out: str | Path, images_out: str | Path,
-        settings: Settings = Settings()) -> dict:
+        settings: Settings = Settings(), geometry: str | Path | None = None) -> dict:
     """Relight both subsets from the model in ``svbrdf``, score them against the frames of the hdr
-    ``manifest``, write the metrics and pictures; returns the metrics."""
+    ``manifest``, write the metrics and pictures; returns the metrics. The lights' intensities are those the
+    fit saw, from ``geometry`` (``separate/geometry.json``: estimated for a capture that stated none) when
+    given, else the manifest's."""
     m = manifest_io.load(manifest)
+    nominal = copy.deepcopy(m)      # the per-pixel baselines fit the photos as their users do: nominal lights
+    if geometry is not None:
+        for frame, seen in zip(m["frames"], read_json(geometry)["frames"]):
+            frame["light"]["intensity"] = seen["light"]["intensity"]
     renderer = FrameRenderer(load_model(svbrdf), manifest_io.camera(m))
     sample = renderer.sample_mask
     held = heldout_lights(len(m["frames"]), settings.heldout_every)
@@ -72,7 +79,7 @@ def run(svbrdf: str | Path, manifest: str | Path, metrics_out: str | Path, image
     images_out.mkdir(parents=True, exist_ok=True)
     metrics: dict = {"definition": DEFINITION, "frames": len(m["frames"]), "sample_pixels": int(sample.sum()),
                      "heldout_every": settings.heldout_every, "relit_every": settings.relit_every}
-    baselines = per_pixel_baselines(m, held, subsets, sample)
+    baselines = per_pixel_baselines(nominal, held, subsets, sample)
     if baselines is not None:
         metrics["baselines"] = {kind: {name: finite_or_none(s.rel_l2) for name, s in scored.items()}
                                 for kind, (scored, _) in baselines.items()}

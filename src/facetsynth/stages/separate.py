@@ -7,25 +7,32 @@ point's frame, rho = I |P - x|^2 / (L n(x) . i), and so is everything after: the
 geometry with the normals (``separate/geometry.json``), which every later stage reads
 (:class:`~facetsynth.stages.common.RectifiedCapture`). Cast shadows, samples far darker than the diffuse
 part predicts, are invalid: masked, not fitted.
+
+A capture that states no light intensities (an ``.lp`` without them: ``assumed`` lists ``intensities``) gets
+them from its own photos: a robust RGB factor per light from the diffuse part
+(:func:`facetsynth.light_factors.estimate`, the mean factor of each channel fixed to 1). The samples are
+divided by it, and ``separate/geometry.json`` carries the corrected intensities to every later stage. Held-out
+lights are not seen: they keep the nominal intensity.
 """
 
 from __future__ import annotations
 
 import logging
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from ..fileio import HALF, as_half, atomic_path, read_frame, read_json, write_exr, write_json, write_npy
 from ..frames import imap, map_frames
+from ..light_factors import estimate as estimate_factors
 from ..normals import FLAT, estimate as estimate_normals
 from ..microfacet import half_vector
 from ..render import light_geometry, towards
 from ..selfcheck import heldout_lights
 from ..separation import brdf_samples, diffuse_level, specular_residual
-from .common import RectifiedCapture, StageSettings, flag_degenerate, tiles
+from .common import RectifiedCapture, StageSettings, flag_degenerate, strided, tiles
 
 log = logging.getLogger(__name__)
 
@@ -49,7 +56,16 @@ LOBE_DEG = 25.0
 # Estimation noise and the leftover bias of a lobe's shoulder stay below it on the virtual scenes (flat); the
 # real reliefs of docs/accuracy.md tilt by 10-30 deg.
 FLAT_TILT_P95_DEG = 3.0
+# AUTO_NORMALS: "auto" estimates normals under directional lights (a dome: a top-down camera, lights all round)
+# and not on a rig of point lights seen obliquely: there the demo's turned copper, whose anisotropic lobes
+# stretch beyond LOBE_DEG, came out tilted by up to 10 deg (95th percentile) on a flat sample
+# (docs/decisions.md, "Shading normals"); config true forces them.
 MIN_KD, MIN_KD_SHARE = 0.01, 0.1   # diffuse_enough
+FACTOR_POINTS = 20_000   # points the lights' intensity factors are estimated from (evenly strided)
+FACTORS_DEFINITION = ("per light, the RGB factor f by which its intensity differs from the nominal one, from the "
+                      "photos' diffuse part (b = f kd/pi n.i, robust rank-1 fit; facetsynth.light_factors); the mean "
+                      "of each channel's factors over the estimated lights is 1; fallback lights (held out, or too "
+                      "few usable points) keep 1; spread: the robust dispersion of a light's ratios")
 # n . i below this: the light grazes the point's own facet; eq. 8 would divide by ~0 (invalid, as below the plane)
 MIN_COS = 1e-3
 
@@ -62,7 +78,8 @@ class Settings(StageSettings):
                               # mean (0: eq. 9's minimum, per channel)
     heldout_every: int = 0    # config selfcheck.heldout_every: every k-th frame's samples are invalid, so that no
                               # later stage sees those lights (facetsynth.selfcheck.heldout_lights; 0: none)
-    shading_normals: bool = True   # a normal per point (photometric stereo); False: the plane's +z everywhere
+    shading_normals: bool | str = "auto"   # a normal per point (photometric stereo): "auto" for directional lights
+                                           # (a dome) only (AUTO_NORMALS), True always, False: the plane's +z
 
 
 def run(geometry: str | Path, kd_out: str | Path, specular_out: str | Path, valid_out: str | Path,
@@ -80,19 +97,22 @@ def run(geometry: str | Path, kd_out: str | Path, specular_out: str | Path, vali
     ``geometry_out``: rectify's ``geometry`` with them (the later stages' geometry).
     """
     capture = RectifiedCapture.load(geometry)
+    estimate_intensities = "intensities" in read_json(geometry).get("assumed", [])
+    settings = replace(settings, shading_normals=uses_normals(settings.shading_normals, capture))
     n_points, n_frames = capture.n_points, len(capture.frame_files)
     with atomic_path(specular_out, suffix=".npy") as tmp_spec, atomic_path(valid_out, suffix=".npy") as tmp_valid:
         # eq. 8's samples in float32 beside the output (a temporary: swept if this process dies), so that
         # eq. 9's kd is not rounded to half floats; the residual goes out in half floats
         scratch = tmp_spec.with_name(tmp_spec.name + ".eq8.npy")
         try:
-            kd, signal, normals = _separate(capture, settings, threads, scratch, tmp_spec, tmp_valid)
+            kd, signal, normals, factors = _separate(capture, settings, threads, scratch, tmp_spec, tmp_valid,
+                                                     estimate_intensities)
         finally:
             scratch.unlink(missing_ok=True)
     if normals_out is not None:
         write_npy(normals_out, normals.astype(np.float32))
     if geometry_out is not None:
-        _write_geometry(geometry, geometry_out, normals_out)
+        _write_geometry(geometry, geometry_out, normals_out, factors)
     write_exr(kd_out, {"RGB": kd.reshape(capture.grid.rows, capture.grid.cols, 3)},
               {"quantity": "kd (diffuse albedo), paper 002 eq. 9" + (
                   f" (the mean of the lowest {100 * settings.lowest:g} % of the qualifying samples)"
@@ -104,6 +124,12 @@ def run(geometry: str | Path, kd_out: str | Path, specular_out: str | Path, vali
                "heldout_frames": int(heldout_lights(n_frames, settings.heldout_every).sum()),
                "points_without_diffuse_estimate": dark, "shading_normals": settings.shading_normals,
                **_normal_metrics(normals, capture)}
+    if factors is not None:
+        metrics["light_factors"] = {"rgb": factors.rgb.round(4).tolist(), "spread": factors.spread.round(4).tolist(),
+                                    "fallback": factors.fallback.tolist(), "definition": FACTORS_DEFINITION}
+        log.info("light factors (estimated, mean 1 per channel): luminance %.3f-%.3f, %d light(s) nominal",
+                 factors.rgb.mean(axis=1)[~factors.fallback].min(initial=1.0),
+                 factors.rgb.mean(axis=1)[~factors.fallback].max(initial=1.0), int(factors.fallback.sum()))
     lit = capture.visible & (kd.sum(axis=1) > 0)
     metrics["specular_signal_fraction"] = float(signal[lit].mean()) if lit.any() else 0.0
     if metrics["specular_signal_fraction"] < MIN_SIGNAL_FRACTION:
@@ -123,9 +149,11 @@ def run(geometry: str | Path, kd_out: str | Path, specular_out: str | Path, vali
 
 
 def _separate(capture: RectifiedCapture, settings: Settings, threads: int, scratch: Path, specular_out: Path,
-              valid_out: Path) -> tuple[np.ndarray, np.ndarray]:
+              valid_out: Path, estimate_intensities: bool = False) -> tuple:
     """Eq. 8 frame by frame into ``scratch``, then eq. 9 tile by tile into the residual and validity files;
-    returns kd (P, 3), which points show specular signal (P,) and the shading normals (P, 3)."""
+    returns kd (P, 3), which points show specular signal (P,), the shading normals (P, 3) and the lights'
+    estimated intensity factors (:class:`~facetsynth.light_factors.Factors`, None unless
+    ``estimate_intensities``)."""
     n_points, n_frames = capture.n_points, len(capture.frame_files)
     points = capture.points
     held = heldout_lights(n_frames, settings.heldout_every)
@@ -165,16 +193,20 @@ def _separate(capture: RectifiedCapture, settings: Settings, threads: int, scrat
         map_frames(normal_tile, list(tiles(n_points)), threads, "separate: shading normals", unit="tile")
         normals[:], relief = relief_normals(normals, capture.visible & diffuse_enough(albedo))
         log.info("shading normals: %s", relief)
+    factors = None
+    if estimate_intensities:
+        factors = _light_factors(rho, valid, capture, normals, capture.visible & diffuse_enough(albedo))
+    scale = np.ones((n_frames, 3)) if factors is None else factors.rgb
     residuals = np.lib.format.open_memmap(specular_out, mode="w+", dtype=HALF, shape=(n_points, n_frames, 3))
 
     def separate_tile(tile: slice) -> None:
-        rho_tile, ok = np.asarray(rho[tile], float), np.asarray(valid[tile])
+        rho_tile, ok = np.asarray(rho[tile], float) / scale[None], np.asarray(valid[tile])
         wi, r2 = light_geometry(points[tile][:, None, :], capture.lights[None])
         if settings.shading_normals:
             rho_tile, ok = _in_shading_frame(rho_tile, wi, normals[tile], albedo[tile], ok)
             valid[tile] = ok
         cos = np.einsum("pfk,pk->pf", wi, normals[tile])
-        radiance = rho_tile * (np.clip(cos, 0, None) / r2)[..., None] * capture.light_intensities[None]
+        radiance = rho_tile * (np.clip(cos, 0, None) / r2)[..., None] * (capture.light_intensities * scale)[None]
         rho_d = diffuse_level(rho_tile, radiance, ok, settings.threshold, settings.lowest)
         kd[tile] = np.pi * rho_d
         residual = specular_residual(rho_tile, rho_d)
@@ -186,7 +218,28 @@ def _separate(capture: RectifiedCapture, settings: Settings, threads: int, scrat
     map_frames(separate_tile, list(tiles(n_points)), threads, "separate: eq. 9", unit="tile")
     residuals.flush()
     del rho, valid, residuals
-    return kd, signal, normals
+    return kd, signal, normals, factors
+
+
+def _light_factors(rho, valid, capture: RectifiedCapture, normals: np.ndarray, trusted: np.ndarray):
+    """The lights' RGB factors (:func:`facetsynth.light_factors.estimate`) from eq. 8's samples ``rho`` (P, F, 3)
+    of evenly strided ``trusted`` points (diffuse enough to have a normal): b = rho (+z . i) against the
+    diffuse shading n . i. Only the valid samples take part (held-out lights: none, so factor 1)."""
+    index = strided(np.flatnonzero(trusted), FACTOR_POINTS)
+    if index.size == 0:
+        index = strided(np.flatnonzero(capture.visible), FACTOR_POINTS)
+    wi, _ = light_geometry(capture.points[index][:, None, :], capture.lights[None])
+    b = np.asarray(rho[index], float) * np.clip(wi[..., 2], 0.0, None)[..., None]
+    shading = np.einsum("pfk,pk->pf", wi, normals[index])
+    return estimate_factors(b, shading, np.asarray(valid[index]))
+
+
+def uses_normals(setting: bool | str, capture: RectifiedCapture) -> bool:
+    """Whether the stage estimates shading normals: config ``separate.shading_normals``, "auto" (AUTO_NORMALS)
+    for captures whose every light is directional."""
+    if setting == "auto":
+        return bool(np.all(capture.lights[:, 3] == 0))
+    return bool(setting)
 
 
 def photometric_normals(b: np.ndarray, wi: np.ndarray, view: np.ndarray,
@@ -246,11 +299,17 @@ def _in_shading_frame(rho: np.ndarray, wi: np.ndarray, normals: np.ndarray, albe
     return np.where(valid[..., None], b / np.where(valid, cos, 1.0)[..., None], 0.0), valid
 
 
-def _write_geometry(geometry: str | Path, geometry_out: str | Path, normals_out: str | Path) -> None:
-    """Rectify's geometry file with the shading normals, its file names relative to ``geometry_out``'s folder."""
+def _write_geometry(geometry: str | Path, geometry_out: str | Path, normals_out: str | Path, factors) -> None:
+    """Rectify's geometry file with the shading normals and the estimated intensities (``factors``, or None),
+    its file names relative to ``geometry_out``'s folder."""
     g, source, folder = read_json(geometry), Path(geometry).parent, Path(geometry_out).parent
-    for frame in g["frames"]:
+    for q, frame in enumerate(g["frames"]):
         frame["file"] = os.path.relpath(source / frame["file"], folder)
+        if factors is not None:
+            frame["light"]["intensity"] = (np.asarray(frame["light"]["intensity"], float) * factors.rgb[q]).tolist()
+    if factors is not None:
+        g["assumed"] = [a for a in g.get("assumed", []) if a != "intensities"]
+        g["intensities"] = "estimated per light from the photos' diffuse part (separate/metrics.json light_factors)"
     if "scene" in g.get("truth", {}):
         g["truth"]["scene"] = os.path.relpath(source / g["truth"]["scene"], folder)
     g["normals"] = os.path.relpath(normals_out, folder)

@@ -207,10 +207,13 @@ def run(geometry: str | Path, ndf: str | Path, grid_path: str | Path,
         flag_degenerate(metrics, f"INSUFFICIENT ROTATION DIVERSITY: the anisotropic exemplars' lobe axes all point "
                         f"one way (concentration {concentration:.2f} >= {syn.SINGLE_ORIENTATION:.2f}), so no exemplar "
                         f"shows this material at another rotation; {stalled} (no match within relative error "
-                        f"{max_relative_error:.2f}, coverage before fill {metrics['coverage_before_fill']:.2f}) and "
-                        "the others may be completed from wrong rotations. Capture the sample at further rotations "
-                        "(e.g. turned by 60 and 120 deg) and list each capture in the sample sheet with rotation_of = "
-                        "this sample: they join its exemplars (paper 002 sec. 4).", log)
+                        f"{max_relative_error:.2f}, coverage before fill {metrics['coverage_before_fill']:.2f}). What "
+                        "the fit did: the stalled NDFs are push-pull extensions of what this view measured, the others "
+                        "completed from the one orientation seen. What it costs: the NDF where no light fell is "
+                        "extrapolated, so renders from views far from this camera's are the least reliable part of "
+                        "the model; the self-check's held-out lights (same view) do not show it. (Captures of the "
+                        "sample turned on the rig, listed with rotation_of = this sample, would join its exemplars.)",
+                        log)
     elif metrics["stalled_majority"]:
         flag_degenerate(metrics, f"{stalled} (no exemplar within relative error {max_relative_error:.2f}) although "
                         f"the lobe axes vary (concentration "
