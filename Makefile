@@ -14,6 +14,11 @@
 #                the frames (120 ... 2600 at 128^2): results/bench/scale.csv and scale.png (about 35 min; each
 #                run's frames and tables are deleted once its figures are recorded: 800^2 writes ~22 GB);
 #                restrict with make bench-scale SCALE_ARGS="--points 64 128 256 --frames 120 480"
+#   make bench-real - facetsynth against the per-pixel fits RTI users rely on (Lambert, PTM, HSH2, HSH3) on the
+#                real light-dome photos of config/samples-rti.tsv (read from ../shared/data/rti, never copied):
+#                relative L2 on the fitting and held-out lights, fit time and memory in
+#                results/bench-real/table.md and table.csv (about 17 min on 2 cores; not run by CI);
+#                restrict with make bench-real REAL_ARGS="--captures rti-leaf"
 
 PYTHON ?= $(shell command -v python3.11 || command -v python3)
 VENV := .venv
@@ -23,8 +28,9 @@ BENCH_PRESETS ?= fast balanced accurate
 BENCH_SCENES ?= demo wallpaper satin paper-256
 BENCH_ARGS ?=
 SCALE_ARGS ?=
+REAL_ARGS ?=
 
-.PHONY: run test test-scenes test-cluster test-firmware bench bench-scale clean
+.PHONY: run test test-scenes test-cluster test-firmware bench bench-scale bench-real clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -65,6 +71,9 @@ bench: $(VENV)/.installed-run
 
 bench-scale: $(VENV)/.installed-run
 	$(BIN)/python workflow/scripts/bench_scale.py --cores $(CORES) --prune $(SCALE_ARGS)
+
+bench-real: $(VENV)/.installed-run
+	$(BIN)/python workflow/scripts/bench_real.py --cores $(CORES) $(REAL_ARGS)
 
 clean:
 	rm -rf results/* .snakemake

@@ -135,12 +135,20 @@ class Clustering:
     distinct: int                # distinct feature rows (bounds the useful number of clusters)
 
 
+KMEANS_POINTS = 32768
+"""k-means fits its centres on at most this many points (evenly strided), then assigns every point: the demo
+(168 x 168) fits on all of its points, as before."""
+
+
 def kmeans(feats: np.ndarray, d: np.ndarray, w: np.ndarray, grid: DirectionGrid, n_clusters: int,
            seed: int = 0, n_init: int = 3, batch: bool = False) -> Clustering:
     """k-means over ``feats`` (N, K); each cluster's representative is its member nearest the centre (eq. 15).
 
     The centre, as a tuple for eq. 15, is the members' mean normalised D
-    (D / s) with their mean W. If there are fewer distinct NDFs than clusters
+    (D / s) with their mean W. The centres are fitted on at most KMEANS_POINTS
+    evenly strided points and every point is then assigned to its nearest
+    (a 310 x 310 dome capture at 64 clusters: 30 s on all points, docs/decisions.md,
+    "Light-dome (RTI) captures"). If there are fewer distinct NDFs than clusters
     (degenerate data, e.g. identical partial NDFs) the number of clusters is
     lowered to the number of distinct rows; empty clusters are dropped.
     """
@@ -157,7 +165,10 @@ def kmeans(feats: np.ndarray, d: np.ndarray, w: np.ndarray, grid: DirectionGrid,
                 else KMeans(n_clusters=k, random_state=seed, n_init=n_init))
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")   # "fewer distinct clusters" is handled below
-            labels = algo.fit_predict(feats)
+            if n <= KMEANS_POINTS:
+                labels = algo.fit_predict(feats)
+            else:
+                labels = algo.fit(feats[:: -(-n // KMEANS_POINTS)]).predict(feats)
     reps, new_labels = [], np.full(n, -1, int)
     om = grid.solid_angles
     for c in np.unique(labels):

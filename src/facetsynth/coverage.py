@@ -48,14 +48,25 @@ class LightFootprint:
                    at_infinity)
 
     def coverage(self, points: np.ndarray, directions: np.ndarray) -> np.ndarray:
-        """Coverage in [0, 1] of directions (N, 3) seen from points (P, 3): (P, N)."""
+        """Coverage in [0, 1] of world directions (N, 3), or each point's own (P, N, 3), seen from points
+        (P, 3): (P, N)."""
+        directions = np.asarray(directions, float)
         return _coverage(self.distance, self.origin, self.pitch, self.height, self.spacing,
-                         seen_from(points, self.at_infinity), np.asarray(directions, float))
+                         seen_from(points, self.at_infinity),
+                         directions if directions.ndim == 3 else directions[None])
 
-    def on_grid(self, points: np.ndarray, grid) -> np.ndarray:
+    def on_grid(self, points: np.ndarray, grid, frames: np.ndarray | None = None) -> np.ndarray:
         """Coverage of the directions of a :class:`facetsynth.grid.DirectionGrid` seen from points (P, 3):
-        (P, T, F)."""
-        return self.coverage(points, grid.directions.reshape(-1, 3)).reshape((-1,) + grid.shape)
+        (P, T, F); with shading ``frames`` (P, 3, 3) (:func:`facetsynth.normals.shading_frames`) the grid is
+        each point's own frame's, turned to the world first."""
+        return self.coverage(points, world_grid(grid, frames)).reshape((-1,) + grid.shape)
+
+
+def world_grid(grid, frames: np.ndarray | None = None) -> np.ndarray:
+    """The grid's directions (N, 3), or with shading ``frames`` (P, 3, 3) each point's grid turned to the world,
+    R^T d (P, N, 3)."""
+    directions = grid.directions.reshape(-1, 3)
+    return directions if frames is None else np.einsum("pji,nj->pni", frames, directions)
 
 
 def read_around(covered: np.ndarray) -> np.ndarray:
@@ -73,18 +84,21 @@ def read_around(covered: np.ndarray) -> np.ndarray:
 @numba.njit(cache=True, nogil=True)
 def _coverage(distance: np.ndarray, origin: np.ndarray, pitch: float, height: float, spacing: float,
               points: np.ndarray, directions: np.ndarray) -> np.ndarray:
-    """Per point and direction: where the ray meets the lights' plane, the distance map there (linear
-    interpolation; beyond the raster: infinitely far), as coverage 1 within 0.75 spacings, 0 beyond 1.25."""
+    """Per point and direction (``directions`` (1 or P, N, 3): shared, or each point's): where the ray meets the
+    lights' plane, the distance map there (linear interpolation; beyond the raster: infinitely far), as coverage
+    1 within 0.75 spacings, 0 beyond 1.25."""
     rows, cols = distance.shape
-    out = np.zeros((points.shape[0], directions.shape[0]))
+    out = np.zeros((points.shape[0], directions.shape[1]))
+    shared = directions.shape[0] == 1
     for a in range(points.shape[0]):
-        for n in range(directions.shape[0]):
-            dz = directions[n, 2]
+        d = directions[0] if shared else directions[a]
+        for n in range(directions.shape[1]):
+            dz = d[n, 2]
             if dz <= 1e-3:                                   # never reaches the plane
                 continue
             t = (height - points[a, 2]) / dz
-            col = (points[a, 0] + t * directions[n, 0] - origin[0]) / pitch
-            row = (points[a, 1] + t * directions[n, 1] - origin[1]) / pitch
+            col = (points[a, 0] + t * d[n, 0] - origin[0]) / pitch
+            row = (points[a, 1] + t * d[n, 1] - origin[1]) / pitch
             if not (0.0 <= row <= rows - 1 and 0.0 <= col <= cols - 1):
                 continue
             r0, c0 = min(int(row), rows - 2), min(int(col), cols - 2)

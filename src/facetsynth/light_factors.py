@@ -273,3 +273,24 @@ def _spread(r, f, a, ok) -> np.ndarray:
     med = _masked_median(x, use, axis=0)
     out = MAD * _masked_median(np.abs(x - med[None]), use, axis=0)
     return np.where(np.isfinite(out), out, 0.0)
+
+
+def fill_from_neighbours(directions: np.ndarray, rgb: np.ndarray, missing: np.ndarray) -> np.ndarray:
+    """``rgb`` (F, 3) with the ``missing`` lights' factors (F,) bool (held out, or fallbacks) taken from their
+    neighbours on the sphere: a Gaussian-weighted mean over the other lights, exp(-(angle / s)^2), s the
+    median angle between a light and its nearest neighbour (``directions`` (F, 3) unit). A dome's factors
+    change smoothly from ring to ring (measured on RealRTI: 0.4 at 11 deg elevation to 1.7 at 75 deg), so a
+    light whose photos the fit never saw is best given its neighbours' factor; without any, it keeps its own."""
+    rgb = np.array(rgb, float)
+    missing = np.asarray(missing, bool)
+    known = np.flatnonzero(~missing)
+    if known.size == 0 or not missing.any():
+        return rgb
+    d = np.asarray(directions, float)
+    angle = np.arccos(np.clip(d @ d.T, -1.0, 1.0))
+    nearest = np.sort(angle + np.diag(np.full(len(d), np.inf)), axis=1)[:, 0]
+    scale = max(float(np.median(nearest)), 1e-3)
+    w = np.exp(-(angle[np.ix_(missing, known)] / scale) ** 2)
+    w /= np.maximum(w.sum(axis=1, keepdims=True), 1e-300)
+    rgb[missing] = w @ rgb[known]
+    return rgb

@@ -83,16 +83,19 @@ class LightTriangulation:
         return cls(triangulation, float(np.median(positions[:, 2])), at_infinity)
 
     def hits(self, points: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """X(x, i) (P, N, 2) in the lights' plane for points (P, 3) and directions (N, 3), and whether the
-        direction reaches the plane at all (i_z > UP) (N,)."""
-        up = directions[:, 2] > UP
+        """X(x, i) (P, N, 2) in the lights' plane for points (P, 3) and world directions (N, 3), the same for
+        every point, or (P, N, 3), each point's own (a shading frame's directions turned to the world); and
+        whether the direction reaches the plane at all (i_z > UP) (1 or P, N)."""
+        d = directions if directions.ndim == 3 else directions[None]
+        up = d[..., 2] > UP
         points = seen_from(points, self.at_infinity)
-        t = (self.height - points[:, None, 2]) / np.where(up, directions[:, 2], 1.0)[None]
-        return points[:, None, :2] + t[..., None] * directions[None, :, :2], up
+        t = (self.height - points[:, None, 2]) / np.where(up, d[..., 2], 1.0)
+        return points[:, None, :2] + t[..., None] * d[..., :2], up
 
     def interpolate(self, values: np.ndarray, valid: np.ndarray, points: np.ndarray,
                     directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Per point, its light samples ``values`` (P, F) interpolated linearly at ``directions`` (N, 3).
+        """Per point, its light samples ``values`` (P, F) interpolated linearly at ``directions`` (N, 3), or
+        each point's own (P, N, 3) (:meth:`hits`).
 
         Invalid samples (``valid`` (P, F) False: saturated, unseen) are left
         out and the remaining barycentric weights renormalised. Returns
@@ -100,10 +103,10 @@ class LightTriangulation:
         lights' hull, for directions that never reach the lights' plane, and
         where every light of the triangle is invalid; there the value is 0.
         """
-        n_points, n_dirs = len(points), len(directions)
+        n_points, n_dirs = len(points), np.shape(directions)[-2]
         xy, up = self.hits(np.asarray(points, float), np.asarray(directions, float))
         simplex = self.triangulation.find_simplex(xy.reshape(-1, 2)).reshape(n_points, n_dirs)
-        simplex[:, ~up] = -1
+        simplex[~np.broadcast_to(up, simplex.shape)] = -1
         return _barycentric_sum(np.asarray(values, float), np.asarray(valid, bool), xy, simplex,
                                 self.triangulation.transform, self.triangulation.simplices)
 

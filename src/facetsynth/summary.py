@@ -32,9 +32,11 @@ STAGES: list[tuple[str, str, Figures | Callable[[dict], list[str]]]] = [
     ("rectify", "rectify/metrics.json",
      lambda m: [f"{m.get('cols')}x{m.get('rows')} points ({m.get('resolution_rule', '?')})",
                 *([f"registration {m['registration_error_px']:.2f} px"] if "registration_error_px" in m else [])]),
-    ("separate", "separate/metrics.json", [("kd vs truth", "kd_median_rel_error", ".4f"),
-                                           ("specular signal at", "specular_signal_fraction", ".0%"),
-                                           ("points without kd", "points_without_diffuse_estimate", "d")]),
+    ("separate", "separate/metrics.json", lambda m: _figures(m, [
+        ("kd vs truth", "kd_median_rel_error", ".4f"), ("specular signal at", "specular_signal_fraction", ".0%"),
+        ("points without kd", "points_without_diffuse_estimate", "d"),
+        ("normals tilt median", "normal_tilt_median_deg", ".1f"), ("p99", "normal_tilt_p99_deg", ".1f")])
+     + _light_factors(m.get("light_factors"))),
     ("resample", "resample/metrics.json",
      lambda m: [f"direction grid {m.get('n_theta')} x {m.get('n_phi')}"]),
     ("partial_ndf", "partial_ndf/metrics.json", [("NDF vs truth", "ndf_rel_l2_median", ".3f"),
@@ -66,6 +68,16 @@ STAGES: list[tuple[str, str, Figures | Callable[[dict], list[str]]]] = [
                                        ("loss", "heldout_loss_rel_l2", "+.4f")]),
 ]
 WARNING = re.compile(r"\bWARNING\b\s+(?P<message>.*)")
+
+
+def _light_factors(record: dict | None) -> list[str]:
+    """The estimated per-light intensity factors (separate), as their luminance range."""
+    if not isinstance(record, dict) or not record.get("rgb"):
+        return []
+    luminance = [sum(rgb) / 3 for rgb, nominal in zip(record["rgb"], record.get("fallback", [])) if not nominal]
+    if not luminance:
+        return []
+    return [f"light factors {min(luminance):.2f}-{max(luminance):.2f} (estimated, {len(luminance)} lights)"]
 
 
 def _figures(metrics: dict, spec: Figures | Callable[[dict], list[str]]) -> list[str]:

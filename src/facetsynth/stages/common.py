@@ -78,6 +78,11 @@ class RectifiedCapture:
         o = towards(points if per_point else np.zeros_like(points), self.view_point)
         return o if self.normals is None else to_local(shading_frames(self.normals[index]), o)
 
+    def frames(self, index) -> np.ndarray | None:
+        """The shading frames (p, 3, 3) of the points ``index`` (:func:`facetsynth.normals.shading_frames`), None
+        without normals: the world's directions of a point's grid are R^T d."""
+        return None if self.normals is None else shading_frames(self.normals[index])
+
     def light_directions(self, index) -> tuple[np.ndarray, np.ndarray]:
         """i (p, F, 3) and |P - x|^2 (p, F) (1 for directional lights) of the points ``index``, eq. 8."""
         wi, r2 = light_geometry(self.points[index][:, None, :], self.lights[None])

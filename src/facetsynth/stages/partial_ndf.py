@@ -45,7 +45,7 @@ def light_coverage(capture: RectifiedCapture, grid: DirectionGrid):
     else:
         log.info("lights: %d, spacing %.1f mm, plane z = %.1f mm", len(capture.lights), 1e3 * footprint.spacing,
                  1e3 * footprint.height)
-    return lambda points: footprint.on_grid(capture.points[points], grid)
+    return lambda points: footprint.on_grid(capture.points[points], grid, capture.frames(points))
 
 
 def run(geometry: str | Path, slice_path: str | Path, grid_path: str | Path, ndf_out: str | Path,

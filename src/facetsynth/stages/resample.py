@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..coverage import LightFootprint, read_around
+from ..coverage import LightFootprint, read_around, world_grid
 from ..fileio import NpyRows, atomic_path, write_json, write_npy
 from ..frames import imap
 from ..grid import DirectionGrid
@@ -133,7 +133,6 @@ def _resample_points(capture: RectifiedCapture, grid: DirectionGrid, spec, ok, p
     threads; returns their colour."""
     lights = LightTriangulation.from_lights(capture.lights)
     footprint = LightFootprint.from_lights(capture.lights)
-    directions = grid.directions.reshape(-1, 3)
     n = points.stop - points.start
     colour = np.ones((n, 3))
     shape = (n,) + grid.shape
@@ -141,13 +140,13 @@ def _resample_points(capture: RectifiedCapture, grid: DirectionGrid, spec, ok, p
     def resample_tile(local: slice) -> tuple[np.ndarray, np.ndarray]:
         tile = slice(points.start + local.start, points.start + local.stop)
         s, valid = np.asarray(spec[tile], float), ok[tile]
-        xyz = capture.points[tile]
-        value, defined = lights.interpolate(s.mean(axis=-1), valid, xyz, directions)
+        xyz, frames = capture.points[tile], capture.frames(tile)
+        value, defined = lights.interpolate(s.mean(axis=-1), valid, xyz, world_grid(grid, frames))
         table = push_pull((value * defined).reshape((-1,) + grid.shape), defined.reshape((-1,) + grid.shape).astype(float))
         total = np.where(valid[..., None], s, 0.0).sum(axis=1)
         mean = total.mean(axis=1, keepdims=True)
         colour[local] = np.divide(total, mean, out=np.ones_like(total), where=mean > 0)
-        return read_around(footprint.on_grid(xyz, grid) > 0), table
+        return read_around(footprint.on_grid(xyz, grid, frames) > 0), table
 
     with support_writer(slice_out, shape) as write_slice:
         for kept, table in imap(resample_tile, list(tiles(n)), threads, "resample", unit="tile"):

@@ -12,7 +12,7 @@ A capture that states no light intensities (an ``.lp`` without them: ``assumed``
 them from its own photos: a robust RGB factor per light from the diffuse part
 (:func:`facetsynth.light_factors.estimate`, the mean factor of each channel fixed to 1). The samples are
 divided by it, and ``separate/geometry.json`` carries the corrected intensities to every later stage. Held-out
-lights are not seen: they keep the nominal intensity.
+lights are not seen: their factors are their neighbours' on the sphere (fill_from_neighbours).
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ import numpy as np
 
 from ..fileio import HALF, as_half, atomic_path, read_frame, read_json, write_exr, write_json, write_npy
 from ..frames import imap, map_frames
-from ..light_factors import estimate as estimate_factors
+from ..light_factors import estimate as estimate_factors, fill_from_neighbours
 from ..normals import FLAT, estimate as estimate_normals
 from ..microfacet import half_vector
 from ..render import light_geometry, towards
@@ -65,7 +65,8 @@ FACTOR_POINTS = 20_000   # points the lights' intensity factors are estimated fr
 FACTORS_DEFINITION = ("per light, the RGB factor f by which its intensity differs from the nominal one, from the "
                       "photos' diffuse part (b = f kd/pi n.i, robust rank-1 fit; facetsynth.light_factors); the mean "
                       "of each channel's factors over the estimated lights is 1; fallback lights (held out, or too "
-                      "few usable points) keep 1; spread: the robust dispersion of a light's ratios")
+                      "few usable points) take their neighbours' on the sphere (facetsynth.light_factors."
+                      "fill_from_neighbours); spread: the robust dispersion of a light's ratios")
 # n . i below this: the light grazes the point's own facet; eq. 8 would divide by ~0 (invalid, as below the plane)
 MIN_COS = 1e-3
 
@@ -127,7 +128,8 @@ def run(geometry: str | Path, kd_out: str | Path, specular_out: str | Path, vali
     if factors is not None:
         metrics["light_factors"] = {"rgb": factors.rgb.round(4).tolist(), "spread": factors.spread.round(4).tolist(),
                                     "fallback": factors.fallback.tolist(), "definition": FACTORS_DEFINITION}
-        log.info("light factors (estimated, mean 1 per channel): luminance %.3f-%.3f, %d light(s) nominal",
+        log.info("light factors (estimated, mean 1 per channel): luminance %.3f-%.3f, %d light(s) from their "
+                 "neighbours",
                  factors.rgb.mean(axis=1)[~factors.fallback].min(initial=1.0),
                  factors.rgb.mean(axis=1)[~factors.fallback].max(initial=1.0), int(factors.fallback.sum()))
     lit = capture.visible & (kd.sum(axis=1) > 0)
@@ -231,7 +233,10 @@ def _light_factors(rho, valid, capture: RectifiedCapture, normals: np.ndarray, t
     wi, _ = light_geometry(capture.points[index][:, None, :], capture.lights[None])
     b = np.asarray(rho[index], float) * np.clip(wi[..., 2], 0.0, None)[..., None]
     shading = np.einsum("pfk,pk->pf", wi, normals[index])
-    return estimate_factors(b, shading, np.asarray(valid[index]))
+    found = estimate_factors(b, shading, np.asarray(valid[index]))
+    if np.all(capture.lights[:, 3] == 0):      # directional: the held-out lights' factors from their neighbours
+        found = replace(found, rgb=fill_from_neighbours(capture.lights[:, :3], found.rgb, found.fallback))
+    return found
 
 
 def uses_normals(setting: bool | str, capture: RectifiedCapture) -> bool:
