@@ -61,6 +61,10 @@ FLAT_TILT_P95_DEG = 3.0
 # stretch beyond LOBE_DEG, came out tilted by up to 10 deg (95th percentile) on a flat sample
 # (docs/decisions.md, "Shading normals"); config true forces them.
 MIN_KD, MIN_KD_SHARE = 0.01, 0.1   # diffuse_enough
+# Points without enough diffuse (a metal) take their normal from their highlight (highlight_normals) when the
+# brightest sample is at least HIGHLIGHT_CONTRAST x their median: the mean half vector of their GLINT_SAMPLES
+# brightest samples. A glint is one or two lights wide on a dome of 48, so a handful of samples holds it.
+HIGHLIGHT_CONTRAST, GLINT_SAMPLES = 4.0, 3
 FACTOR_POINTS = 20_000   # points the lights' intensity factors are estimated from (evenly strided)
 FACTORS_DEFINITION = ("per light, the RGB factor f by which its intensity differs from the nominal one, from the "
                       "photos' diffuse part (b = f kd/pi n.i, robust rank-1 fit; facetsynth.light_factors); the mean "
@@ -184,16 +188,22 @@ def _separate(capture: RectifiedCapture, settings: Settings, threads: int, scrat
     signal = np.zeros(n_points, bool)
     normals = np.tile(FLAT, (n_points, 1))
     albedo = np.zeros(n_points)
+    glints, contrast = np.tile(FLAT, (n_points, 1)), np.zeros(n_points)
 
     def normal_tile(tile: slice) -> None:
         wi, _ = light_geometry(points[tile][:, None, :], capture.lights[None])
         b = np.asarray(rho[tile], float) * np.clip(wi[..., 2], 0.0, None)[..., None]
-        normals[tile], albedo[tile] = photometric_normals(b, wi, towards(points[tile], capture.view_point),
-                                                          np.asarray(valid[tile]))
+        view, ok = towards(points[tile], capture.view_point), np.asarray(valid[tile])
+        normals[tile], albedo[tile] = photometric_normals(b, wi, view, ok)
+        glints[tile], contrast[tile] = highlight_normals(b, half_vector(wi, view[:, None, :]), ok)
 
     if settings.shading_normals:
         map_frames(normal_tile, list(tiles(n_points)), threads, "separate: shading normals", unit="tile")
-        normals[:], relief = relief_normals(normals, capture.visible & diffuse_enough(albedo))
+        diffuse, glinting = diffuse_enough(albedo), contrast >= HIGHLIGHT_CONTRAST
+        normals[:] = np.where((~diffuse & glinting)[:, None], glints, normals)
+        normals[:], relief = relief_normals(normals, capture.visible & (diffuse | glinting))
+        log.info("shading normals from the diffuse part at %.0f %% of the points, from highlights at %.0f %%",
+                 100 * np.mean(diffuse[capture.visible]), 100 * np.mean((~diffuse & glinting)[capture.visible]))
         log.info("shading normals: %s", relief)
     factors = None
     if estimate_intensities:
@@ -260,6 +270,29 @@ def photometric_normals(b: np.ndarray, wi: np.ndarray, view: np.ndarray,
         found = estimate_normals(b, wi, valid & off_lobe)
         normal = found.normal
     return found.normal, found.albedo.mean(axis=-1)
+
+
+def highlight_normals(b: np.ndarray, h: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(normals (p, 3), highlight contrast (p,)) from the points' highlights: where the diffuse part is too weak
+    to tell a normal (a metal), a lobe centred on the normal peaks at h = n, so the normal is the mean half
+    vector ``h`` (p, F, 3) of the GLINT_SAMPLES brightest valid samples, weighted by their luminance above the
+    point's median. Contrast: the brightest sample's luminance over the median (0 without samples)."""
+    lum = np.where(valid, b.mean(axis=-1), np.nan)
+    with np.errstate(all="ignore"):
+        median = np.nan_to_num(np.nanmedian(lum, axis=1), nan=0.0) if lum.shape[1] else np.zeros(len(lum))
+    lum = np.nan_to_num(lum, nan=-np.inf)
+    k = min(GLINT_SAMPLES, lum.shape[1])
+    if k == 0:
+        return np.tile(FLAT, (len(lum), 1)), np.zeros(len(lum))
+    top = np.argpartition(-lum, k - 1, axis=1)[:, :k]
+    peak = np.take_along_axis(lum, top, axis=1)
+    w = np.clip(np.where(np.isfinite(peak), peak, 0.0) - median[:, None], 0.0, None)
+    n = np.einsum("pk,pkj->pj", w, np.take_along_axis(h, top[..., None], axis=1))
+    norm = np.linalg.norm(n, axis=1, keepdims=True)
+    ok = (norm[:, 0] > 0) & (n[:, 2] > 0)
+    n = np.where(ok[:, None], n / np.where(norm > 0, norm, 1.0), FLAT)
+    contrast = np.where(ok & (median > 0), peak.max(axis=1, initial=0.0) / np.where(median > 0, median, 1.0), 0.0)
+    return n, contrast
 
 
 def diffuse_enough(albedo: np.ndarray) -> np.ndarray:
