@@ -6,23 +6,10 @@ import numpy as np
 import pytest
 
 from facetsynth.light_factors import Factors, FactorSettings, correct, estimate, reference_region
+from test_normals import dome, random_normals   # the same synthetic dome and relief as the normals' tests
 
 Z = np.array([0.0, 0.0, 1.0])
 
-
-def dome(n_rings=4, per_ring=12, elev=(15.0, 75.0)):
-    """48 directional lights: rings at elevations 15..75 deg, azimuths staggered ring to ring."""
-    out = []
-    for r, e in enumerate(np.radians(np.linspace(*elev, n_rings))):
-        az = 2 * np.pi * (np.arange(per_ring) + 0.5 * (r % 2)) / per_ring
-        out.append(np.stack([np.cos(e) * np.cos(az), np.cos(e) * np.sin(az), np.full(per_ring, np.sin(e))], -1))
-    return np.concatenate(out)
-
-
-def random_normals(rng, P, max_tilt_deg):
-    t = np.arccos(rng.uniform(np.cos(np.radians(max_tilt_deg)), 1.0, P))
-    a = rng.uniform(0, 2 * np.pi, P)
-    return np.stack([np.sin(t) * np.cos(a), np.sin(t) * np.sin(a), np.cos(t)], -1)
 
 
 def ggx_specular(normal, lights, alpha):

@@ -233,6 +233,22 @@ def plot_scale(rows: Sequence[dict], exponents: dict, path: str | Path, title: s
     return path
 
 
+def run_workflow(command: list[str], workdir: str | Path, label: str, logs: str) -> int:
+    """Run a benchmark's Snakemake ``command`` in ``workdir``, saying what runs, how long it took or where the
+    ``logs`` are when it failed (stderr); its exit code."""
+    import subprocess
+    import sys
+    import time
+    print(f"{label}: {' '.join(command[2:])}  (in {workdir})", file=sys.stderr, flush=True)
+    start = time.monotonic()
+    code = subprocess.run(command, cwd=workdir).returncode
+    if code:
+        print(f"{label} failed (exit {code}); logs in {workdir}/{logs}", file=sys.stderr)
+    else:
+        print(f"{label} done in {time.monotonic() - start:.0f} s", file=sys.stderr, flush=True)
+    return code
+
+
 def _cell(value):
     if value is None:
         return ""

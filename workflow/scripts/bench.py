@@ -17,9 +17,7 @@ from __future__ import annotations
 import argparse
 import csv
 import datetime
-import subprocess
 import sys
-import time
 from pathlib import Path
 
 from facetsynth import bench
@@ -81,14 +79,9 @@ def main(argv: list[str] | None = None) -> int:
                    "--config", f"preset={preset}", "samples=samples.tsv", *args.snakemake_args]
         if args.dry_run:
             command.append("-n")
-        print(f"bench: {preset}: {' '.join(command[2:])}  (in {workdir})", file=sys.stderr, flush=True)
-        start = time.monotonic()
-        done = subprocess.run(command, cwd=workdir)
-        if done.returncode != 0:
-            print(f"bench: preset {preset} failed (exit {done.returncode}); logs in {workdir}/results/*/logs",
-                  file=sys.stderr)
-            return done.returncode
-        print(f"bench: {preset} done in {time.monotonic() - start:.0f} s", file=sys.stderr, flush=True)
+        failed = bench.run_workflow(command, workdir, f"bench: preset {preset}", "results/*/logs")
+        if failed:
+            return failed
     if args.dry_run:
         return 0
 

@@ -26,9 +26,7 @@ from __future__ import annotations
 import argparse
 import csv
 import datetime
-import subprocess
 import sys
-import time
 from pathlib import Path
 
 from facetsynth import bench
@@ -100,14 +98,9 @@ def main(argv: list[str] | None = None) -> int:
                    "--", f"results/{capture}/selfcheck/metrics.json"]
         if args.dry_run:
             command.insert(-2, "-n")
-        print(f"bench-real: {capture}: {' '.join(command[2:])}  (in {workdir})", file=sys.stderr, flush=True)
-        start = time.monotonic()
-        done = subprocess.run(command, cwd=workdir)
-        if done.returncode != 0:
-            print(f"bench-real: {capture} failed (exit {done.returncode}); logs in {workdir}/results/{capture}/logs",
-                  file=sys.stderr)
-            return done.returncode
-        print(f"bench-real: {capture} done in {time.monotonic() - start:.0f} s", file=sys.stderr, flush=True)
+        failed = bench.run_workflow(command, workdir, f"bench-real: {capture}", f"results/{capture}/logs")
+        if failed:
+            return failed
     if args.dry_run:
         return 0
 

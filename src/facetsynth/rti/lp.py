@@ -183,5 +183,5 @@ def manifest(path: str | Path, image_size: tuple[int, int]) -> dict[str, Any]:
             "frames": [{"light": {"direction": d.tolist(), "intensity": i.tolist()},
                         "exposures": [{"file": f, "time": 1.0}]}
                        for f, d, i in zip(files, directions, intensities)],
-            "source": {"lp": str(path.resolve()), "side_file": str(side_file(path)) if side else None},
+            "source": {"lp": str(path.resolve()), "side_file": str(side_file(path)) if side_file(path).is_file() else None},
             "assumed": assumed}
