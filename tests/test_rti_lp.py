@@ -253,6 +253,26 @@ def test_side_file_overrides_the_defaults(tmp_path):
     assert (col, row) == pytest.approx((3.5 + 1, 2.5))
 
 
+def test_a_reference_box_of_photo_pixels_becomes_a_box_on_the_plane(tmp_path):
+    """``reference: [col0, row0, col1, row1]`` (pixel edges col0 - 0.5 .. col1 - 0.5) is the box it covers on the
+    sample plane, image top = +y; the plane points inside it are exactly those pixels' points."""
+    path = small_lp(tmp_path, 3, size=(8, 6))
+    (tmp_path / "dome.yaml").write_text(json.dumps({"reference": [1, 2, 4, 5]}))
+    m = manifest.load(path)
+    pixel = 0.1e-3
+    assert m["reference_region"]["x"] == pytest.approx([(1 - 4) * pixel, (4 - 4) * pixel])
+    assert m["reference_region"]["y"] == pytest.approx([-(5 - 3) * pixel, -(2 - 3) * pixel])
+    centres = manifest.camera(m).pixel_plane_points()                     # (rows, cols, 2)
+    box = m["reference_region"]
+    inside = ((centres[..., 0] >= box["x"][0]) & (centres[..., 0] <= box["x"][1])
+              & (centres[..., 1] >= box["y"][0]) & (centres[..., 1] <= box["y"][1]))
+    rows, cols = np.nonzero(inside)
+    assert set(rows) == {2, 3, 4} and set(cols) == {1, 2, 3}
+    (tmp_path / "dome.yaml").write_text(json.dumps({"reference": [4, 2, 1, 5]}))
+    with pytest.raises(InputError, match="dome.yaml.*reference must be a box"):
+        manifest.load(path)
+
+
 def test_partial_side_file_lists_the_rest_as_assumed(tmp_path):
     path = small_lp(tmp_path, 3)
     (tmp_path / "dome.yaml").write_text("transfer: linear\n")

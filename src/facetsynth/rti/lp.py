@@ -56,7 +56,7 @@ GRAZING_Z = 1e-3
 PIXEL_SIZE_MM = 0.1
 """Default size of an image pixel on the object (mm): only labels lengths (module docstring)."""
 
-SIDE_KEYS = {"pixel_size_mm", "intensities", "transfer", "black_level", "camera"}
+SIDE_KEYS = {"pixel_size_mm", "intensities", "transfer", "black_level", "camera", "reference"}
 
 
 def read(path: str | Path) -> tuple[list[str], np.ndarray]:
@@ -148,12 +148,28 @@ def options(path: str | Path, n_lights: int) -> dict[str, Any]:
                                  and (low < value < high or key == "black_level" and value == low)):
             limits = "a finite number > 0" if key == "pixel_size_mm" else "a number in [0, 1)"
             raise InputError(side, f"{key} must be {limits}, got {str(value)!r:.40}")
+    reference = found.get("reference")
+    if "reference" in found and not (isinstance(reference, list) and len(reference) == 4
+                                     and all(isinstance(v, int) and not isinstance(v, bool) for v in reference)
+                                     and reference[0] < reference[2] and reference[1] < reference[3]):
+        raise InputError(side, f"reference must be a box of photo pixels [col0, row0, col1, row1] with col0 < col1 "
+                               f"and row0 < row1, got {str(reference)!r:.60}")
     if "transfer" in found:
         try:
             parse_transfer(found["transfer"])
         except (TypeError, ValueError) as exc:
             raise InputError(side, f"transfer: {exc}") from None
     return found
+
+
+def _plane_box(camera: dict[str, Any], box: list[int]) -> dict[str, list[float]]:
+    """A box of photo pixels [col0, row0, col1, row1] (pixel edges: col0 - 0.5 .. col1 - 0.5) as the box it covers
+    on the sample plane, {"x": [x0, x1], "y": [y0, y1]} in metres (the camera's plane homography, inverted)."""
+    from ..manifest import camera as manifest_camera
+    H = np.linalg.inv(manifest_camera({"camera": camera}).plane_homography())
+    corners = np.array([[box[0] - 0.5, box[1] - 0.5, 1.0], [box[2] - 0.5, box[3] - 0.5, 1.0]]) @ H.T
+    xy = corners[:, :2] / corners[:, 2:]
+    return {"x": sorted(xy[:, 0].tolist()), "y": sorted(xy[:, 1].tolist())}
 
 
 def manifest(path: str | Path, image_size: tuple[int, int]) -> dict[str, Any]:
@@ -183,5 +199,7 @@ def manifest(path: str | Path, image_size: tuple[int, int]) -> dict[str, Any]:
             "frames": [{"light": {"direction": d.tolist(), "intensity": i.tolist()},
                         "exposures": [{"file": f, "time": 1.0}]}
                        for f, d, i in zip(files, directions, intensities)],
-            "source": {"lp": str(path.resolve()), "side_file": str(side_file(path)) if side_file(path).is_file() else None},
+            **({"reference_region": _plane_box(camera, side["reference"])} if "reference" in side else {}),
+            "source": {"lp": str(path.resolve()),
+                       "side_file": str(side_file(path)) if side_file(path).is_file() else None},
             "assumed": assumed}

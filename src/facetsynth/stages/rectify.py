@@ -63,6 +63,7 @@ def run(hdr_manifest: str | Path, frames_dir: str | Path, geometry_out: str | Pa
         frames = map_frames(rectify_frame, list(enumerate(capture["frames"])), threads, "rectify")
     geometry = {"grid": grid.to_dict(), "view_point": camera.view_point.tolist(),
                 "visible": visible.astype(int).tolist(), "frames": frames, "assumed": capture.get("assumed", []),
+                **({"reference_region": capture["reference_region"]} if "reference_region" in capture else {}),
                 "camera": {k: capture["camera"][k] for k in ("width", "height", "K", "R", "t", "projection")
                            if k in capture["camera"]}}
     if manifest_io.has_truth(capture):

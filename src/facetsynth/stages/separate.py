@@ -26,7 +26,9 @@ import numpy as np
 
 from ..fileio import HALF, as_half, atomic_path, read_frame, read_json, write_exr, write_json, write_npy
 from ..frames import imap, map_frames
-from ..light_factors import estimate as estimate_factors, fill_from_neighbours
+from ..errors import InputError
+from ..light_factors import Factors, estimate as estimate_factors, fill_from_neighbours, \
+    reference_region as reference_factors
 from ..normals import FLAT, estimate as estimate_normals
 from ..microfacet import half_vector
 from ..render import light_geometry, towards
@@ -102,7 +104,8 @@ def run(geometry: str | Path, kd_out: str | Path, specular_out: str | Path, vali
     ``geometry_out``: rectify's ``geometry`` with them (the later stages' geometry).
     """
     capture = RectifiedCapture.load(geometry)
-    estimate_intensities = "intensities" in read_json(geometry).get("assumed", [])
+    g = read_json(geometry)
+    estimate_intensities = "reference_region" in g or "intensities" in g.get("assumed", [])
     settings = replace(settings, shading_normals=uses_normals(settings.shading_normals, capture))
     n_points, n_frames = capture.n_points, len(capture.frame_files)
     with atomic_path(specular_out, suffix=".npy") as tmp_spec, atomic_path(valid_out, suffix=".npy") as tmp_valid:
@@ -111,7 +114,7 @@ def run(geometry: str | Path, kd_out: str | Path, specular_out: str | Path, vali
         scratch = tmp_spec.with_name(tmp_spec.name + ".eq8.npy")
         try:
             kd, signal, normals, factors = _separate(capture, settings, threads, scratch, tmp_spec, tmp_valid,
-                                                     estimate_intensities)
+                                                     g if estimate_intensities else None)
         finally:
             scratch.unlink(missing_ok=True)
     if normals_out is not None:
@@ -131,7 +134,9 @@ def run(geometry: str | Path, kd_out: str | Path, specular_out: str | Path, vali
                **_normal_metrics(normals, capture)}
     if factors is not None:
         metrics["light_factors"] = {"rgb": factors.rgb.round(4).tolist(), "spread": factors.spread.round(4).tolist(),
-                                    "fallback": factors.fallback.tolist(), "definition": FACTORS_DEFINITION}
+                                    "fallback": factors.fallback.tolist(), "definition": FACTORS_DEFINITION,
+                                    "from": ("the reference region " + str(g["reference_region"])
+                                             if "reference_region" in g else "the whole sample's diffuse part")}
         log.info("light factors (estimated, mean 1 per channel): luminance %.3f-%.3f, %d light(s) from their "
                  "neighbours",
                  factors.rgb.mean(axis=1)[~factors.fallback].min(initial=1.0),
@@ -155,11 +160,12 @@ def run(geometry: str | Path, kd_out: str | Path, specular_out: str | Path, vali
 
 
 def _separate(capture: RectifiedCapture, settings: Settings, threads: int, scratch: Path, specular_out: Path,
-              valid_out: Path, estimate_intensities: bool = False) -> tuple:
+              valid_out: Path, intensities_from: dict | None = None) -> tuple:
     """Eq. 8 frame by frame into ``scratch``, then eq. 9 tile by tile into the residual and validity files;
     returns kd (P, 3), which points show specular signal (P,), the shading normals (P, 3) and the lights'
-    estimated intensity factors (:class:`~facetsynth.light_factors.Factors`, None unless
-    ``estimate_intensities``)."""
+    estimated intensity factors (:class:`~facetsynth.light_factors.Factors`; None unless
+    ``intensities_from``, the geometry file of a capture without intensities: from its ``reference_region``
+    when it names one, else from the whole sample)."""
     n_points, n_frames = capture.n_points, len(capture.frame_files)
     points = capture.points
     held = heldout_lights(n_frames, settings.heldout_every)
@@ -206,8 +212,9 @@ def _separate(capture: RectifiedCapture, settings: Settings, threads: int, scrat
                  100 * np.mean(diffuse[capture.visible]), 100 * np.mean((~diffuse & glinting)[capture.visible]))
         log.info("shading normals: %s", relief)
     factors = None
-    if estimate_intensities:
-        factors = _light_factors(rho, valid, capture, normals, capture.visible & diffuse_enough(albedo))
+    if intensities_from is not None:
+        factors = _light_factors(rho, valid, capture, normals, capture.visible & diffuse_enough(albedo),
+                                 intensities_from.get("reference_region"))
     scale = np.ones((n_frames, 3)) if factors is None else factors.rgb
     residuals = np.lib.format.open_memmap(specular_out, mode="w+", dtype=HALF, shape=(n_points, n_frames, 3))
 
@@ -233,17 +240,34 @@ def _separate(capture: RectifiedCapture, settings: Settings, threads: int, scrat
     return kd, signal, normals, factors
 
 
-def _light_factors(rho, valid, capture: RectifiedCapture, normals: np.ndarray, trusted: np.ndarray):
+def _light_factors(rho, valid, capture: RectifiedCapture, normals: np.ndarray, trusted: np.ndarray,
+                   reference: dict | None = None):
     """The lights' RGB factors (:func:`facetsynth.light_factors.estimate`) from eq. 8's samples ``rho`` (P, F, 3)
     of evenly strided ``trusted`` points (diffuse enough to have a normal): b = rho (+z . i) against the
-    diffuse shading n . i. Only the valid samples take part (held-out lights: none, so factor 1)."""
-    index = strided(np.flatnonzero(trusted), FACTOR_POINTS)
+    diffuse shading n . i; or, with a ``reference`` box {"x": [x0, x1], "y": [y0, y1]} (metres), from the
+    points in it (:func:`facetsynth.light_factors.reference_region`). Only the valid samples take part
+    (held-out lights: none; their factors are their neighbours')."""
+    if reference is not None:
+        x, y = capture.points[:, 0], capture.points[:, 1]
+        inside = capture.visible & (x >= reference["x"][0]) & (x <= reference["x"][1]) \
+            & (y >= reference["y"][0]) & (y <= reference["y"][1])
+        index = strided(np.flatnonzero(inside), FACTOR_POINTS)
+        if index.size == 0:
+            raise InputError(None, f"the reference region {reference} holds none of the sample's visible points")
+    else:
+        index = strided(np.flatnonzero(trusted), FACTOR_POINTS)
     if index.size == 0:
         index = strided(np.flatnonzero(capture.visible), FACTOR_POINTS)
     wi, _ = light_geometry(capture.points[index][:, None, :], capture.lights[None])
     b = np.asarray(rho[index], float) * np.clip(wi[..., 2], 0.0, None)[..., None]
     shading = np.einsum("pfk,pk->pf", wi, normals[index])
-    found = estimate_factors(b, shading, np.asarray(valid[index]))
+    ok = np.asarray(valid[index])
+    if reference is not None:
+        rgb = reference_factors(b, shading, ok, np.ones(len(index), bool))
+        found = Factors(rgb=rgb, points_used=np.full(len(rgb), len(index)), spread=np.zeros(len(rgb)),
+                        fallback=~ok.any(axis=0) | np.all(rgb == 1.0, axis=1))
+    else:
+        found = estimate_factors(b, shading, ok)
     if np.all(capture.lights[:, 3] == 0):      # directional: the held-out lights' factors from their neighbours
         found = replace(found, rgb=fill_from_neighbours(capture.lights[:, :3], found.rgb, found.fallback))
     return found
