@@ -13,7 +13,7 @@ from facetsynth.camera import Camera
 from facetsynth.errors import InputError
 from facetsynth.lightplane import LightTriangulation, light_plane
 from facetsynth.render import light_geometry, radiance, towards
-from facetsynth.stages.separate import FLAT_TILT_P95_DEG, relief_normals
+from facetsynth.normals import FLAT_TILT_P95_DEG, relief_normals
 
 
 def top_down(width=40, height=30, metres=0.04) -> Camera:
@@ -212,7 +212,7 @@ def test_a_metals_normal_comes_from_its_highlight():
     under 48 random dome lights gives the tilted normal within 3 deg, and a clear contrast; a matte point
     (no glint) has contrast near 1."""
     from facetsynth.microfacet import half_vector
-    from facetsynth.stages.separate import HIGHLIGHT_CONTRAST, highlight_normals
+    from facetsynth.normals import HIGHLIGHT_CONTRAST, highlight_normals
     rng = np.random.default_rng(5)
     el, az = np.radians(rng.uniform(10, 80, 48)), rng.uniform(0, 2 * np.pi, 48)
     wi = np.c_[np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)]

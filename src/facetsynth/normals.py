@@ -53,6 +53,12 @@ Guards: a point with fewer than ``min_inliers`` inliers, ill-conditioned lights 
 coplanar ones), |g| ~ 0 or a normal facing down (n_z <= 0) falls back to the flat normal +z and is
 flagged. A normal tilted beyond ``max_tilt_deg`` keeps its azimuth and is clamped to that tilt. Samples
 with non-finite values or directions are invalid. Nothing non-finite leaves :func:`estimate`.
+
+What the stage ``separate`` does with it (docs/decisions.md, "Shading normals"):
+:func:`photometric_normals` leaves the specular lobe's core out of the fit (LOBE_DEG about the normal);
+a point without enough diffuse to tell its normal (:func:`diffuse_enough`: a metal) takes it from its
+highlight (:func:`highlight_normals`); :func:`relief_normals` removes a tilt common to the whole sample and
+makes a sample flat, exactly, when 95 % of its tilts are below FLAT_TILT_P95_DEG.
 """
 
 from __future__ import annotations
@@ -61,7 +67,23 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .microfacet import half_vector
+
 FLAT = np.array([0.0, 0.0, 1.0])
+
+# Photometric stereo leaves out the samples whose half vector lies within LOBE_DEG of the point's normal: the
+# specular lobe's core. Trimming alone misses a broad lobe's shoulder, and under an oblique camera that shoulder
+# lies on one side: it tilted a flat GGX point (alpha 0.25) by 2-3 deg. Twice: about +z, then about the estimate.
+LOBE_DEG = 25.0
+# A sample whose shading normals tilt less than this (deg) at their 95th percentile is flat: its normals are +z.
+# Estimation noise and the leftover bias of a lobe's shoulder stay below it on the virtual scenes (flat); the
+# real reliefs of docs/accuracy.md tilt by 10-30 deg.
+FLAT_TILT_P95_DEG = 3.0
+MIN_KD, MIN_KD_SHARE = 0.01, 0.1   # diffuse_enough
+# Points without enough diffuse (a metal) take their normal from their highlight (highlight_normals) when the
+# brightest sample is at least HIGHLIGHT_CONTRAST x their median: the mean half vector of their GLINT_SAMPLES
+# brightest samples. A glint is one or two lights wide on a dome of 48, so a handful of samples holds it.
+HIGHLIGHT_CONTRAST, GLINT_SAMPLES = 4.0, 3
 
 
 def shading_frames(normal: np.ndarray) -> np.ndarray:
@@ -269,3 +291,71 @@ def _estimate_block(samples, directions, valid, st: NormalSettings):
     alb = np.where(den[:, None] > 0, num / np.where(den > 0, den, 1.0)[:, None], 0.0)
     alb = np.clip(np.nan_to_num(alb, nan=0.0, posinf=0.0, neginf=0.0), 0.0, None)
     return n, alb, inl, fallback
+
+
+def photometric_normals(b: np.ndarray, wi: np.ndarray, view: np.ndarray,
+                        valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(normals (p, 3), luminance albedo kd/pi (p,)) of points from their irradiance-normalised radiance
+    b = rho (+z . i) (p, F, 3) (b = (kd/pi) n . i on the diffuse part) by robust photometric stereo
+    (:func:`facetsynth.normals.estimate`) away from the specular lobe: LOBE_DEG about the normal, +z first,
+    then the estimate (``view`` (p, 3) the points' o)."""
+    h = half_vector(wi, view[:, None, :])
+    normal = np.broadcast_to(FLAT, view.shape)
+    for _ in range(2):
+        off_lobe = np.einsum("pfk,pk->pf", h, normal) < np.cos(np.radians(LOBE_DEG))
+        found = estimate(b, wi, valid & off_lobe)
+        normal = found.normal
+    return found.normal, found.albedo.mean(axis=-1)
+
+
+def highlight_normals(b: np.ndarray, h: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(normals (p, 3), highlight contrast (p,)) from the points' highlights: where the diffuse part is too weak
+    to tell a normal (a metal), a lobe centred on the normal peaks at h = n, so the normal is the mean half
+    vector ``h`` (p, F, 3) of the GLINT_SAMPLES brightest valid samples, weighted by their luminance above the
+    point's median. Contrast: the brightest sample's luminance over the median (0 without samples)."""
+    lum = np.where(valid, b.mean(axis=-1), np.nan)
+    with np.errstate(all="ignore"):
+        median = np.nan_to_num(np.nanmedian(lum, axis=1), nan=0.0) if lum.shape[1] else np.zeros(len(lum))
+    lum = np.nan_to_num(lum, nan=-np.inf)
+    k = min(GLINT_SAMPLES, lum.shape[1])
+    if k == 0:
+        return np.tile(FLAT, (len(lum), 1)), np.zeros(len(lum))
+    top = np.argpartition(-lum, k - 1, axis=1)[:, :k]
+    peak = np.take_along_axis(lum, top, axis=1)
+    w = np.clip(np.where(np.isfinite(peak), peak, 0.0) - median[:, None], 0.0, None)
+    n = np.einsum("pk,pkj->pj", w, np.take_along_axis(h, top[..., None], axis=1))
+    norm = np.linalg.norm(n, axis=1, keepdims=True)
+    ok = (norm[:, 0] > 0) & (n[:, 2] > 0)
+    n = np.where(ok[:, None], n / np.where(norm > 0, norm, 1.0), FLAT)
+    contrast = np.where(ok & (median > 0), peak.max(axis=1, initial=0.0) / np.where(median > 0, median, 1.0), 0.0)
+    return n, contrast
+
+
+def diffuse_enough(albedo: np.ndarray) -> np.ndarray:
+    """(P,) whether a point's diffuse part is strong enough to tell its normal: luminance kd at least
+    MIN_KD, and MIN_KD_SHARE of the sample's 90th percentile (a metal's or a black marker's normal is
+    the specular tail's and the noise's, not the surface's)."""
+    kd = np.pi * np.asarray(albedo, float)
+    return (kd >= MIN_KD) & (kd >= MIN_KD_SHARE * np.percentile(kd, 90))
+
+
+def relief_normals(normals: np.ndarray, trusted: np.ndarray) -> tuple[np.ndarray, str]:
+    """The shading normals of a relief on the plane, and what was done. Points not ``trusted`` (off the
+    sample, too little diffuse) get +z. The sample's mean plane is z = 0, so the trusted points' slopes
+    (-n_x/n_z, -n_y/n_z) have median 0: a common tilt is a bias of the estimate (a lobe's shoulder, an
+    uneven dome), removed. Then, when FLAT_TILT_P95_DEG exceeds the 95th percentile of the tilts, the
+    sample is flat: +z everywhere (a model only as complex as the scene)."""
+    visible = trusted
+    normals = np.where(trusted[:, None], normals, FLAT)
+    slope = -normals[:, :2] / normals[:, 2:]
+    bias = np.median(slope[visible], axis=0) if visible.any() else np.zeros(2)
+    slope[trusted] -= bias
+    normals = np.concatenate([-slope, np.ones((len(slope), 1))], axis=1)
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    tilt = np.degrees(np.arccos(np.clip(normals[visible, 2], -1.0, 1.0)))
+    p95 = float(np.percentile(tilt, 95)) if tilt.size else 0.0
+    removed = f"common tilt {np.degrees(np.arctan(np.hypot(*bias))):.2f} deg removed"
+    if p95 < FLAT_TILT_P95_DEG:
+        return np.tile(FLAT, (len(normals), 1)), f"flat ({removed}; 95 % of tilts below {p95:.2f} deg < " \
+                                                   f"{FLAT_TILT_P95_DEG:g})"
+    return normals, f"relief ({removed}; 95th percentile of tilts {p95:.1f} deg)"

@@ -25,11 +25,12 @@ from pathlib import Path
 import numpy as np
 
 from ..fileio import HALF, as_half, atomic_path, read_frame, read_json, write_exr, write_json, write_npy
-from ..frames import imap, map_frames
 from ..errors import InputError
+from ..frames import imap, map_frames
 from ..light_factors import Factors, estimate as estimate_factors, fill_from_neighbours, \
     reference_region as reference_factors
-from ..normals import FLAT, estimate as estimate_normals
+from ..normals import (FLAT, HIGHLIGHT_CONTRAST, diffuse_enough, highlight_normals, photometric_normals,
+                       relief_normals)
 from ..microfacet import half_vector
 from ..render import light_geometry, towards
 from ..selfcheck import heldout_lights
@@ -50,23 +51,10 @@ FRAME_BLOCK = 32    # frames read before their samples are written
 # A sample whose luminance is below CAST_SHADOW x what the point's diffuse part predicts, (kd/pi) n . i, lies in a
 # cast shadow of the relief (or is occluded): invalid. Sensor noise and the darkest diffuse samples stay above it.
 CAST_SHADOW = 0.5
-# Photometric stereo leaves out the samples whose half vector lies within LOBE_DEG of the point's normal: the
-# specular lobe's core. Trimming alone misses a broad lobe's shoulder, and under an oblique camera that shoulder
-# lies on one side: it tilted a flat GGX point (alpha 0.25) by 2-3 deg. Twice: about +z, then about the estimate.
-LOBE_DEG = 25.0
-# A sample whose shading normals tilt less than this (deg) at their 95th percentile is flat: its normals are +z.
-# Estimation noise and the leftover bias of a lobe's shoulder stay below it on the virtual scenes (flat); the
-# real reliefs of docs/accuracy.md tilt by 10-30 deg.
-FLAT_TILT_P95_DEG = 3.0
 # AUTO_NORMALS: "auto" estimates normals under directional lights (a dome: a top-down camera, lights all round)
 # and not on a rig of point lights seen obliquely: there the demo's turned copper, whose anisotropic lobes
 # stretch beyond LOBE_DEG, came out tilted by up to 10 deg (95th percentile) on a flat sample
 # (docs/decisions.md, "Shading normals"); config true forces them.
-MIN_KD, MIN_KD_SHARE = 0.01, 0.1   # diffuse_enough
-# Points without enough diffuse (a metal) take their normal from their highlight (highlight_normals) when the
-# brightest sample is at least HIGHLIGHT_CONTRAST x their median: the mean half vector of their GLINT_SAMPLES
-# brightest samples. A glint is one or two lights wide on a dome of 48, so a handful of samples holds it.
-HIGHLIGHT_CONTRAST, GLINT_SAMPLES = 4.0, 3
 FACTOR_POINTS = 20_000   # points the lights' intensity factors are estimated from (evenly strided)
 FACTORS_DEFINITION = ("per light, the RGB factor f by which its intensity differs from the nominal one, from the "
                       "photos' diffuse part (b = f kd/pi n.i, robust rank-1 fit; facetsynth.light_factors); the mean "
@@ -279,74 +267,6 @@ def uses_normals(setting: bool | str, capture: RectifiedCapture) -> bool:
     if setting == "auto":
         return bool(np.all(capture.lights[:, 3] == 0))
     return bool(setting)
-
-
-def photometric_normals(b: np.ndarray, wi: np.ndarray, view: np.ndarray,
-                        valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(normals (p, 3), luminance albedo kd/pi (p,)) of points from their irradiance-normalised radiance
-    b = rho (+z . i) (p, F, 3) (b = (kd/pi) n . i on the diffuse part) by robust photometric stereo
-    (:func:`facetsynth.normals.estimate`) away from the specular lobe: LOBE_DEG about the normal, +z first,
-    then the estimate (``view`` (p, 3) the points' o)."""
-    h = half_vector(wi, view[:, None, :])
-    normal = np.broadcast_to(FLAT, view.shape)
-    for _ in range(2):
-        off_lobe = np.einsum("pfk,pk->pf", h, normal) < np.cos(np.radians(LOBE_DEG))
-        found = estimate_normals(b, wi, valid & off_lobe)
-        normal = found.normal
-    return found.normal, found.albedo.mean(axis=-1)
-
-
-def highlight_normals(b: np.ndarray, h: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(normals (p, 3), highlight contrast (p,)) from the points' highlights: where the diffuse part is too weak
-    to tell a normal (a metal), a lobe centred on the normal peaks at h = n, so the normal is the mean half
-    vector ``h`` (p, F, 3) of the GLINT_SAMPLES brightest valid samples, weighted by their luminance above the
-    point's median. Contrast: the brightest sample's luminance over the median (0 without samples)."""
-    lum = np.where(valid, b.mean(axis=-1), np.nan)
-    with np.errstate(all="ignore"):
-        median = np.nan_to_num(np.nanmedian(lum, axis=1), nan=0.0) if lum.shape[1] else np.zeros(len(lum))
-    lum = np.nan_to_num(lum, nan=-np.inf)
-    k = min(GLINT_SAMPLES, lum.shape[1])
-    if k == 0:
-        return np.tile(FLAT, (len(lum), 1)), np.zeros(len(lum))
-    top = np.argpartition(-lum, k - 1, axis=1)[:, :k]
-    peak = np.take_along_axis(lum, top, axis=1)
-    w = np.clip(np.where(np.isfinite(peak), peak, 0.0) - median[:, None], 0.0, None)
-    n = np.einsum("pk,pkj->pj", w, np.take_along_axis(h, top[..., None], axis=1))
-    norm = np.linalg.norm(n, axis=1, keepdims=True)
-    ok = (norm[:, 0] > 0) & (n[:, 2] > 0)
-    n = np.where(ok[:, None], n / np.where(norm > 0, norm, 1.0), FLAT)
-    contrast = np.where(ok & (median > 0), peak.max(axis=1, initial=0.0) / np.where(median > 0, median, 1.0), 0.0)
-    return n, contrast
-
-
-def diffuse_enough(albedo: np.ndarray) -> np.ndarray:
-    """(P,) whether a point's diffuse part is strong enough to tell its normal: luminance kd at least
-    MIN_KD, and MIN_KD_SHARE of the sample's 90th percentile (a metal's or a black marker's normal is
-    the specular tail's and the noise's, not the surface's)."""
-    kd = np.pi * np.asarray(albedo, float)
-    return (kd >= MIN_KD) & (kd >= MIN_KD_SHARE * np.percentile(kd, 90))
-
-
-def relief_normals(normals: np.ndarray, trusted: np.ndarray) -> tuple[np.ndarray, str]:
-    """The shading normals of a relief on the plane, and what was done. Points not ``trusted`` (off the
-    sample, too little diffuse) get +z. The sample's mean plane is z = 0, so the trusted points' slopes
-    (-n_x/n_z, -n_y/n_z) have median 0: a common tilt is a bias of the estimate (a lobe's shoulder, an
-    uneven dome), removed. Then, when FLAT_TILT_P95_DEG exceeds the 95th percentile of the tilts, the
-    sample is flat: +z everywhere (a model only as complex as the scene)."""
-    visible = trusted
-    normals = np.where(trusted[:, None], normals, FLAT)
-    slope = -normals[:, :2] / normals[:, 2:]
-    bias = np.median(slope[visible], axis=0) if visible.any() else np.zeros(2)
-    slope[trusted] -= bias
-    normals = np.concatenate([-slope, np.ones((len(slope), 1))], axis=1)
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    tilt = np.degrees(np.arccos(np.clip(normals[visible, 2], -1.0, 1.0)))
-    p95 = float(np.percentile(tilt, 95)) if tilt.size else 0.0
-    removed = f"common tilt {np.degrees(np.arctan(np.hypot(*bias))):.2f} deg removed"
-    if p95 < FLAT_TILT_P95_DEG:
-        return np.tile(FLAT, (len(normals), 1)), f"flat ({removed}; 95 % of tilts below {p95:.2f} deg < " \
-                                                   f"{FLAT_TILT_P95_DEG:g})"
-    return normals, f"relief ({removed}; 95th percentile of tilts {p95:.1f} deg)"
 
 
 def _in_shading_frame(rho: np.ndarray, wi: np.ndarray, normals: np.ndarray, albedo: np.ndarray,
