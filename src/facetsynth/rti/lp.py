@@ -22,7 +22,10 @@ manifest's ``assumed`` field, and each overridable in a side file ``<stem>.yaml`
   times the image width. Nothing in the fit depends on it (directional lights and an orthographic
   camera have no length in them); it labels the report's axes and sizes exports;
 * light intensities (``intensities``: one [r, g, b] per light, default white 1): irradiance at normal
-  incidence, in units of the photos' linear values;
+  incidence, in units of the photos' linear values. Without them the stage ``separate`` estimates a factor
+  per light from the photos (:mod:`facetsynth.light_factors`): from the whole sample's diffuse part, or
+  from a white or grey box the user names, ``reference: [col0, row0, col1, row1]`` (photo pixels; the
+  manifest's ``reference_region``, on the plane);
 * the photos' transfer function (``transfer``, default ``srgb``: JPEG and 8-bit PNG are sRGB-encoded
   as cameras and RTI tools write them; ``linear`` or ``{gamma: G}`` otherwise) and ``black_level``
   (default 0);
