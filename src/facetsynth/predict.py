@@ -161,8 +161,8 @@ def predict(model_dir: str | Path, manifest_path: str | Path, out_dir: str | Pat
     out_frames = []
     for q in tqdm(selected, desc="predict", unit="frame", disable=not progress):
         light = m["frames"][q]["light"]
-        image = _finite_frame(renderer.radiance(manifest_io.light_point(light), light["intensity"]), q, manifest_path,
-                              model_dir)
+        image = _finite_frame(renderer.radiance(manifest_io.light_point(light), light["intensity"]), q,
+                              manifest_path, model_dir)
         name = f"frames/{q:04d}.exr"
         write_exr(out_dir / name, {"RGB": image}, {"exposure_time": 1.0, "quantity": "predicted radiance I",
                                                    "source_frame": int(q)})

@@ -12,8 +12,8 @@ from .. import manifest as manifest_io
 from ..errors import InputError
 from ..fileio import read_json
 from ..normals import shading_frames, to_local
-from ..render import light_geometry, towards
 from ..plane import PlaneGrid
+from ..render import light_geometry, towards
 from ..scene import MaterialMaps, Scene
 
 TILE_POINTS = 256  # points per tile: bounds the memory of every per-point stage

@@ -136,9 +136,9 @@ def run(capture_dir: str | Path, frames_dir: str | Path, manifest_out: str | Pat
     if dark:
         flag_degenerate(metrics, f"{len(dark)} of {len(frames)} frames are dark (no pixel above the noise floor; "
                                  f"the first: frame {dark[0]}, {capture['frames'][dark[0]]['exposures'][0]['file']}): "
-                                 "the fit takes them as measurements of black reflectance in those light directions, "
-                                 "which pulls the NDF and ks down there; if those lights did not fire, drop their frames "
-                                 "from the manifest (or the .lp) and re-run from hdr", log)
+                                 "the fit takes them as measurements of black reflectance in those light "
+                                 "directions, which pulls the NDF and ks down there; if those lights did not fire, "
+                                 "drop their frames from the manifest (or the .lp) and re-run from hdr", log)
     if negatives.count:
         log.warning("%d exposure values are negative (first in %s): taken as read noise around the black "
                     "level, below the noise floor, and clipped to 0", negatives.count, negatives.first_file)
