@@ -446,8 +446,11 @@ def test_the_workflow_fits_a_dome_capture(repo, tmp_path):
 def test_check_passes_a_good_lp_capture(tmp_path, capsys):
     path = small_lp(tmp_path, 5)
     assert cli.main(["check", str(path)]) == 0
-    out = capsys.readouterr().out
+    captured = capsys.readouterr()
+    out, said = captured.out, captured.out + captured.err
     assert f"{path}: valid capture, 5 frames, 5 exposure files, camera 6x5" in out, out
+    # what was assumed is said, and where to override it
+    assert "assumed, as the capture does not say: an orthographic camera" in said and "dome.yaml" in said, said
 
 
 @pytest.mark.parametrize("line, reason", [(4, "three numbers"), (6, "below the sample")])

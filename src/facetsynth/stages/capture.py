@@ -83,7 +83,19 @@ def inspect_capture(path: str | Path) -> tuple[dict, list[str]]:
         warnings.append(f"{len(dark)} of {len(per_frame)} frame(s) are dark, no value above the noise floor "
                         f"({floor:g}) in any exposure (first: frame {dark[0]}, "
                         f"{manifest['frames'][dark[0]]['exposures'][0]['file']})")
+    if manifest.get("assumed"):
+        warnings.append(assumed_note(manifest["assumed"], manifest.get("source", {}).get("lp")))
     return manifest, warnings
+
+
+def assumed_note(assumed: list[str], lp: str | None) -> str:
+    """What a capture (an ``.lp``) did not say and the pipeline assumes (:mod:`facetsynth.rti.lp`)."""
+    said = {"camera": "an orthographic camera looking straight down", "pixel_size_mm": "0.1 mm per pixel",
+            "intensities": "light intensities estimated per light from the photos",
+            "transfer": "sRGB photos", "black_level": "black level 0"}
+    where = f" in {Path(lp).with_suffix('.yaml').name} beside the .lp" if lp else ""
+    return ("assumed, as the capture does not say: " + "; ".join(said.get(a, a) for a in assumed)
+            + f" (override{where})")
 
 
 @dataclass(frozen=True)
