@@ -45,7 +45,7 @@ def test_report_holds_every_figure(demo_run, repo, tmp_path):
     results, categories = report_tables(html)
     views = [v["name"] for v in yaml.safe_load((demo_run / "config/config.yaml").read_text())["validate"]["views"]]
     clusters = json.loads((demo_run / "results/demo/stencil_fit/models/stencil.json").read_text())["clusters"]
-    expected = {"1 capture": ["capture.png"], "2 SVBRDF maps": ["eta.png", "kd.png", "ks.png"],
+    expected = {"1 capture": ["capture.png"], "2 SVBRDF maps": ["eta.png", "kd.png", "ks.png", "relief.png"],
                 "3 NDFs": ["ndf.png"], "4 clusters": ["clusters.png"],
                 "5 held-out views": [f"heldout_{v}.png" for v in sorted(views)],
                 "6 stencil fits": [f"stencil/cluster_{c['cluster']:03d}.png" for c in clusters]}
@@ -157,3 +157,18 @@ def test_heldout_differences_are_zero_for_a_perfect_prediction():
     buffer = io.BytesIO()
     fig.savefig(buffer, format="png")
     assert buffer.getvalue()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_relief_figure_shows_the_normals_and_the_lights_factors():
+    """A tilted patch in the normal map and the tilt panel; the factors plotted by elevation, held-out lights
+    marked; without factors a note that the capture stated its intensities."""
+    normals = np.tile([0.0, 0.0, 1.0], (20, 30, 1))
+    normals[5:10, 5:10] = [np.sin(0.3), 0.0, np.cos(0.3)]
+    mask = np.ones((20, 30), bool)
+    factors = {"rgb": [[0.5, 0.5, 0.6], [1.0, 1.0, 1.0], [1.5, 1.4, 1.4]], "fallback": [False, True, False]}
+    fig = figures.relief_figure(normals, mask, (0, 30, 0, 20), factors, np.array([10.0, 40.0, 70.0]), "t")
+    tilt = fig.axes[1].images[0].get_array()
+    assert tilt.max() == pytest.approx(np.degrees(0.3)) and tilt.min() == 0.0
+    assert len(fig.axes[2].collections) == 4                  # R, G, B and the held-out light
+    fig = figures.relief_figure(normals, mask, (0, 30, 0, 20), None, np.array([10.0]), "t")
+    assert "as the capture states them" in fig.axes[2].texts[0].get_text()

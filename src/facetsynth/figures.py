@@ -585,3 +585,52 @@ def write_stencils(svbrdf: str | Path, models: str | Path, out_dir: str | Path, 
 
 def _num(v) -> str:
     return "n/a" if v is None else f"{float(v):.3g}"
+
+
+def relief_figure(normals: np.ndarray, mask: np.ndarray, extent, factors: dict | None, elevations: np.ndarray,
+                  title: str) -> Figure:
+    """The shading normals (H, W, 3) as a normal map, RGB = (n + 1) / 2 (flat: (0.5, 0.5, 1)), their tilt from
+    the plane, and the lights' estimated intensity factors (separate's ``light_factors``, or None: as the
+    capture stated them) against each light's elevation (deg)."""
+    fig = Figure(figsize=(13.5, 3.6), layout="constrained")
+    axes = fig.subplots(1, 3)
+    axes[0].imshow(grey_off(np.clip((normals + 1.0) / 2.0, 0.0, 1.0), mask), extent=extent, interpolation="nearest")
+    axes[0].set_title(f"{title}: shading normals, (n + 1) / 2")
+    tilt = np.degrees(np.arccos(np.clip(normals[..., 2], -1.0, 1.0)))
+    image = axes[1].imshow(np.ma.masked_array(tilt, ~mask), extent=extent, interpolation="nearest",
+                           cmap=colormaps["magma"].with_extremes(bad=OFF_SAMPLE), vmin=0.0,
+                           vmax=max(5.0, float(np.percentile(tilt[mask], 99))) if mask.any() else 5.0)
+    fig.colorbar(image, ax=axes[1], fraction=0.05).set_label("tilt from the plane (deg)")
+    axes[1].set_title("tilt")
+    for ax in axes[:2]:
+        ax.set_xlabel("x (mm)")
+    axes[0].set_ylabel("y (mm)")
+    ax = axes[2]
+    if factors is None:
+        ax.text(0.5, 0.5, "light intensities as the capture states them", ha="center", va="center",
+                transform=ax.transAxes)
+        ax.set_axis_off()
+    else:
+        rgb, nominal = np.asarray(factors["rgb"], float), np.asarray(factors["fallback"], bool)
+        for k, colour in enumerate(("tab:red", "tab:green", "tab:blue")):
+            ax.scatter(elevations[~nominal], rgb[~nominal, k], s=12, color=colour, alpha=0.7)
+        ax.scatter(elevations[nominal], rgb[nominal].mean(axis=1), s=40, marker="x", color="black",
+                   label="held out: from its neighbours")
+        ax.axhline(1.0, color="grey", lw=0.8)
+        ax.set_xlabel("light elevation (deg)")
+        ax.set_ylabel("intensity factor (R, G, B)")
+        ax.set_title("lights' intensities, estimated from the photos")
+        if nominal.any():
+            ax.legend(loc="best", fontsize=8)
+    return fig
+
+
+def write_relief(geometry: str | Path, separate_metrics: str | Path, out: str | Path, sample: str) -> None:
+    """The shading normals and the lights' estimated intensities (stage ``separate``)."""
+    from .fileio import read_json
+    capture, grid, visible, extent = _plane_and_visible(geometry)
+    normals = np.tile([0.0, 0.0, 1.0], (capture.n_points, 1)) if capture.normals is None else capture.normals
+    d = capture.lights[:, :3]            # towards each light from the sample's centre (the origin), either kind
+    elevations = np.degrees(np.arcsin(np.clip(d[:, 2] / np.linalg.norm(d, axis=1), -1.0, 1.0)))
+    save_png(relief_figure(normals.reshape(grid.rows, grid.cols, 3), visible, extent,
+                           read_json(separate_metrics).get("light_factors"), elevations, sample), out)

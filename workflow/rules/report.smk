@@ -11,7 +11,8 @@ BENCH_FIGURES = [name for name in ("tradeoff", "scale") if Path(f"docs/bench/{na
 def report_figures(sample):
     """The report figures of ``sample`` (targets of the default run); the benchmark plots with the first
     sample's."""
-    out = [f"results/{sample}/report/{name}.png" for name in ("capture", "kd", "ks", "eta", "ndf", "clusters")]
+    out = [f"results/{sample}/report/{name}.png"
+           for name in ("capture", "relief", "kd", "ks", "eta", "ndf", "clusters")]
     out.append(f"results/{sample}/report/stencil")
     if rendered_truth(sample) is not None:
         out += [f"results/{sample}/report/heldout_{view}.png" for view in HELDOUT_VIEWS]
@@ -37,6 +38,24 @@ rule report_capture:
         mem_mb=300,   # demo, 168^2 points: 133 MB peak
     script:
         "../scripts/report_capture.py"
+
+
+rule report_relief:
+    input:
+        geometry="results/{sample}/separate/geometry.json",
+        metrics="results/{sample}/separate/metrics.json",
+    output:
+        report("results/{sample}/report/relief.png", caption="../report/relief.rst", category="{sample}",
+               subcategory="2 SVBRDF maps", labels={"figure": "shading normals, light intensities"}),
+    log:
+        "results/{sample}/logs/report_relief.log",
+    benchmark:
+        "results/{sample}/benchmarks/report_relief.tsv"
+    threads: 1
+    resources:
+        mem_mb=400,   # as report_maps: the grid's maps
+    script:
+        "../scripts/report_relief.py"
 
 
 rule report_maps:
