@@ -233,6 +233,41 @@ def plot_scale(rows: Sequence[dict], exponents: dict, path: str | Path, title: s
     return path
 
 
+WORKFLOW_FILES = ("Snakefile", "workflow", "config", "resources", "rig")
+"""What a benchmark's own working folder links from the repository (its results stay apart)."""
+
+
+def sheet_rows(sheet: str | Path, names: Sequence[str] | None, label: str) -> list[dict]:
+    """The rows of a sample sheet, only those ``names`` when given; exits naming any name the sheet lacks."""
+    import csv
+    import sys
+    with open(sheet, newline="") as f:
+        rows = [r for r in csv.DictReader(f, delimiter="\t") if r.get("sample")]
+    if names:
+        known = {r["sample"] for r in rows}
+        unknown = [s for s in names if s not in known]
+        if unknown:
+            sys.exit(f"{label}: {', '.join(unknown)} not in {sheet} (it lists {', '.join(sorted(known))})")
+        rows = [r for r in rows if r["sample"] in names]
+    return rows
+
+
+def prepare_workdir(workdir: str | Path, rows: list[dict], repo: str | Path) -> None:
+    """A benchmark's working folder: the workflow linked from ``repo`` and its own ``samples.tsv`` of ``rows``
+    (rewritten only when it changes, so Snakemake's inputs keep their times)."""
+    workdir = Path(workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    for name in WORKFLOW_FILES:
+        link = workdir / name
+        if not link.is_symlink():
+            link.symlink_to(Path(repo) / name)
+    text = "sample\tsource\tpath\trig\n" + "".join(
+        f"{r['sample']}\t{r['source']}\t{r['path']}\t{r.get('rig') or ''}\n" for r in rows)
+    sheet = workdir / "samples.tsv"
+    if not sheet.is_file() or sheet.read_text() != text:
+        sheet.write_text(text)
+
+
 def run_workflow(command: list[str], workdir: str | Path, label: str, logs: str) -> int:
     """Run a benchmark's Snakemake ``command`` in ``workdir``, saying what runs, how long it took or where the
     ``logs`` are when it failed (stderr); its exit code."""

@@ -15,7 +15,6 @@ finds its outputs up to date), so an interrupted bench resumes.
 from __future__ import annotations
 
 import argparse
-import csv
 import datetime
 import sys
 from pathlib import Path
@@ -23,32 +22,6 @@ from pathlib import Path
 from facetsynth import bench
 
 REPO = Path(__file__).resolve().parents[2]
-LINKED = ("Snakefile", "workflow", "config", "resources", "rig")
-
-
-def sample_rows(sheet: Path, scenes: list[str] | None) -> list[dict]:
-    with open(sheet, newline="") as f:
-        rows = [r for r in csv.DictReader(f, delimiter="\t") if r.get("sample")]
-    if scenes:
-        known = {r["sample"] for r in rows}
-        unknown = [s for s in scenes if s not in known]
-        if unknown:
-            sys.exit(f"bench: scene(s) {', '.join(unknown)} not in {sheet} (it lists {', '.join(sorted(known))})")
-        rows = [r for r in rows if r["sample"] in scenes]
-    return rows
-
-
-def prepare(workdir: Path, rows: list[dict]) -> None:
-    workdir.mkdir(parents=True, exist_ok=True)
-    for name in LINKED:
-        link = workdir / name
-        if not link.is_symlink():
-            link.symlink_to(REPO / name)
-    text = "sample\tsource\tpath\trig\n" + "".join(
-        f"{r['sample']}\t{r['source']}\t{r['path']}\t{r.get('rig') or ''}\n" for r in rows)
-    sheet = workdir / "samples.tsv"
-    if not sheet.is_file() or sheet.read_text() != text:
-        sheet.write_text(text)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -64,7 +37,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("snakemake_args", nargs="*", help="after --: passed to every snakemake call")
     args = parser.parse_args(argv)
 
-    rows = sample_rows(args.sheet, args.scenes)
+    rows = bench.sheet_rows(args.sheet, args.scenes, "bench: scene(s)")
     scenes = [r["sample"] for r in rows]
     virtual = [r["sample"] for r in rows if r["source"] == "virtual"]
     if virtual != scenes:
@@ -73,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
         workdir = args.out / "runs" / preset
         if args.collect_only:
             continue
-        prepare(workdir, rows)
+        bench.prepare_workdir(workdir, rows, REPO)
         targets = [f"results/{s}/validate/metrics.json" if s in virtual else f"results/{s}/svbrdf" for s in scenes]
         command = [sys.executable, "-m", "snakemake", "--cores", str(args.cores), *targets,
                    "--config", f"preset={preset}", "samples=samples.tsv", *args.snakemake_args]

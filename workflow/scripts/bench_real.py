@@ -24,7 +24,6 @@ written outside results/, which git ignores.
 from __future__ import annotations
 
 import argparse
-import csv
 import datetime
 import sys
 from pathlib import Path
@@ -32,7 +31,6 @@ from pathlib import Path
 from facetsynth import bench
 
 REPO = Path(__file__).resolve().parents[2]
-LINKED = ("Snakefile", "workflow", "config", "resources", "rig")
 SELFCHECK = "selfcheck={heldout_every: 8, relit_every: 1}"
 
 
@@ -41,15 +39,7 @@ def sample_rows(sheet: Path, captures: list[str] | None) -> list[dict]:
     when a capture's .lp file is not there."""
     if not sheet.is_file():
         sys.exit(f"bench-real: sample sheet {sheet} not found")
-    with open(sheet, newline="") as f:
-        rows = [r for r in csv.DictReader(f, delimiter="\t") if r.get("sample")]
-    if captures:
-        known = {r["sample"] for r in rows}
-        unknown = [c for c in captures if c not in known]
-        if unknown:
-            sys.exit(f"bench-real: capture(s) {', '.join(unknown)} not in {sheet} "
-                     f"(it lists {', '.join(sorted(known))})")
-        rows = [r for r in rows if r["sample"] in captures]
+    rows = bench.sheet_rows(sheet, captures, "bench-real: capture(s)")
     for row in rows:
         path = Path(row["path"])
         path = path if path.is_absolute() else (REPO / path)
@@ -62,18 +52,6 @@ def sample_rows(sheet: Path, captures: list[str] | None) -> list[dict]:
                      "repository (no licence) and must be there on this machine")
         row["path"] = str(path.resolve())
     return rows
-
-
-def prepare(workdir: Path, rows: list[dict]) -> None:
-    workdir.mkdir(parents=True, exist_ok=True)
-    for name in LINKED:
-        link = workdir / name
-        if not link.is_symlink():
-            link.symlink_to(REPO / name)
-    text = "sample\tsource\tpath\n" + "".join(f"{r['sample']}\t{r['source']}\t{r['path']}\n" for r in rows)
-    sheet = workdir / "samples.tsv"
-    if not sheet.is_file() or sheet.read_text() != text:
-        sheet.write_text(text)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -91,7 +69,7 @@ def main(argv: list[str] | None = None) -> int:
     captures = [r["sample"] for r in rows]
     workdir = args.out / "run"
     if not args.collect_only:
-        prepare(workdir, rows)
+        bench.prepare_workdir(workdir, rows, REPO)
     for capture in [] if args.collect_only else captures:
         command = [sys.executable, "-m", "snakemake", "--cores", str(args.cores),
                    "--config", "samples=samples.tsv", SELFCHECK, *args.snakemake_args,

@@ -33,7 +33,6 @@ import yaml
 from facetsynth import bench
 
 REPO = Path(__file__).resolve().parents[2]
-LINKED = ("Snakefile", "workflow", "config", "resources", "rig")
 SCENE = REPO / "resources/scenes/paper-scale.yaml"
 RIGS = {120: "paper-120", 480: "paper-scale", 1360: "virtual-demo", 2600: "paper-2600"}
 FRAMES_SWEEP_POINTS = 128
@@ -52,16 +51,9 @@ def rig_description(points: int, frames: int) -> dict:
 
 
 def prepare(workdir: Path, points: int, frames: int) -> None:
-    workdir.mkdir(parents=True, exist_ok=True)
-    for name in LINKED:
-        link = workdir / name
-        if not link.is_symlink():
-            link.symlink_to(REPO / name)
     rig = workdir / "rig.yaml"
-    text = yaml.safe_dump(rig_description(points, frames), sort_keys=False)
-    if not rig.is_file() or rig.read_text() != text:
-        rig.write_text(text)
-    for name, text in (("samples.tsv", f"sample\tsource\tpath\trig\nscale\tvirtual\t{SCENE}\t{rig}\n"),
+    bench.prepare_workdir(workdir, [{"sample": "scale", "source": "virtual", "path": SCENE, "rig": rig}], REPO)
+    for name, text in (("rig.yaml", yaml.safe_dump(rig_description(points, frames), sort_keys=False)),
                        ("scale.yaml", yaml.safe_dump({"samples": "samples.tsv", "rectify": {"resolution": points},
                                                       "scatter": {"tiles": 1}}))):
         if not (workdir / name).is_file() or (workdir / name).read_text() != text:
