@@ -8,21 +8,15 @@ import numpy as np
 import pytest
 
 from facetsynth.rti import fits
+from test_rti_lp import spiral_dome   # the .lp tests' golden-angle dome
+
+Z_MIN = 0.15   # the dome's lowest cos(theta)
 
 
 def _random_dome(count: int, rng: np.random.Generator, z_min: float = 0.15) -> np.ndarray:
     """Directions uniform in cos(theta) in [z_min, 1] and in azimuth."""
     z = rng.uniform(z_min, 1.0, count)
     phi = rng.uniform(0.0, 2 * np.pi, count)
-    s = np.sqrt(1 - z * z)
-    return np.stack([s * np.cos(phi), s * np.sin(phi), z], axis=1)
-
-
-def _spiral_dome(count: int, z_min: float = 0.15) -> np.ndarray:
-    """Deterministic dome: golden-angle spiral, cos(theta) evenly spaced in [z_min, 1)."""
-    k = np.arange(count)
-    z = 1.0 - (k + 0.5) / count * (1.0 - z_min)
-    phi = k * np.pi * (3.0 - np.sqrt(5.0))
     s = np.sqrt(1 - z * z)
     return np.stack([s * np.cos(phi), s * np.sin(phi), z], axis=1)
 
@@ -67,7 +61,7 @@ def test_hsh_basis_orthonormal_by_monte_carlo():
 def test_hsh_low_order_terms_match_closed_forms():
     """H_0^0 = 1/sqrt(2 pi), H_1^0 = sqrt(3/(2 pi)) (2 cos(theta) - 1),
     H_1^1 = sqrt(6/pi) cos(phi) sqrt(cos(theta) - cos^2(theta)) (RTIBuilder/relight, no Condon-Shortley phase)."""
-    d = _spiral_dome(25)
+    d = spiral_dome(25, Z_MIN)
     ct, phi = d[:, 2], np.arctan2(d[:, 1], d[:, 0])
     b = fits.basis("hsh3", d)
     root = np.sqrt(ct - ct * ct)
@@ -78,7 +72,7 @@ def test_hsh_low_order_terms_match_closed_forms():
 
 
 def test_ptm_basis_is_malzbender_eq2():
-    d = _spiral_dome(7)
+    d = spiral_dome(7, Z_MIN)
     u, v = d[:, 0], d[:, 1]
     np.testing.assert_allclose(fits.basis("ptm", d),
                                np.stack([u * u, v * v, u * v, u, v, np.ones(7)], axis=1), rtol=0, atol=1e-15)
@@ -155,7 +149,7 @@ def _blinn_phong_capture(lights: np.ndarray) -> np.ndarray:
 
 
 def test_hsh3_heldout_error_below_ptm_on_smooth_specular_pixels():
-    lights = _spiral_dome(40)
+    lights = spiral_dome(40, Z_MIN)
     heldout = np.arange(40) % 4 == 1                     # 10 held out, 30 training
     scores = fits.heldout_scores(lights, _blinn_phong_capture(lights), heldout)
     measured = {k: (scores[k]["training"], scores[k]["heldout"]) for k in fits.KINDS}
@@ -175,14 +169,14 @@ MEASURED_BLINN_PHONG = {"lambert": (0.090383, 0.097195), "ptm": (0.074472, 0.090
 
 @pytest.mark.parametrize("kind, count", [("lambert", 2), ("ptm", 5), ("hsh2", 8), ("hsh3", 10)])
 def test_fewer_frames_than_coefficients_raises(kind, count):
-    d = _spiral_dome(count)
+    d = spiral_dome(count, Z_MIN)
     n = fits.n_coefficients(kind)
     with pytest.raises(ValueError, match=rf"{kind} fit needs at least {n} light directions.*F = {count}"):
         fits.fit(kind, d, np.ones((count, 2, 2)))
 
 
 def test_unknown_kind_and_bad_shapes_raise():
-    d = _spiral_dome(20)
+    d = spiral_dome(20, Z_MIN)
     with pytest.raises(ValueError, match="unknown RTI fit kind 'ptm2'"):
         fits.basis("ptm2", d)
     with pytest.raises(ValueError, match="one leading entry per light direction"):

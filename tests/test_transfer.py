@@ -15,6 +15,7 @@ from facetsynth.fileio import read_frame, write_exr
 from facetsynth.response import Response
 from facetsynth.stages import hdr as hdr_stage
 from facetsynth.transfer import Transfer, decode, parse, table
+from test_response import LIGHTS, MANIFEST, SIZE   # the bracket tests' 8-bit capture: camera and lights
 
 # --- the transfer functions ---------------------------------------------------------------------------
 
@@ -79,14 +80,6 @@ def test_declared_response_sensor_model_clips_only_255_and_floors_only_black():
 
 # --- the hdr stage on one 8-bit exposure per frame -----------------------------------------------------
 
-SIZE = 32
-MANIFEST = {
-    "version": 1, "units": "m", "sample": {"width": 0.1, "height": 0.1},
-    "camera": {"width": SIZE, "height": SIZE, "K": [[300, 0, 15.5], [0, 300, 15.5], [0, 0, 1]],
-               "R": [[1, 0, 0], [0, -1, 0], [0, 0, -1]], "t": [0, 0, 1], "distortion": [0, 0, 0, 0, 0]},
-    "saturation": 1.0, "frames": [],
-}
-LIGHTS = [[-0.1, -0.1, 0.1], [0.1, -0.1, 0.1], [-0.1, 0.1, 0.1], [0.1, 0.1, 0.1]]
 TIME = 0.5
 
 
