@@ -17,6 +17,7 @@ lights are not seen: their factors are their neighbours' on the sphere (fill_fro
 
 from __future__ import annotations
 
+import copy
 import logging
 import os
 from dataclasses import dataclass, replace
@@ -108,7 +109,7 @@ def run(geometry: str | Path, kd_out: str | Path, specular_out: str | Path, vali
     if normals_out is not None:
         write_npy(normals_out, normals.astype(np.float32))
     if geometry_out is not None:
-        _write_geometry(geometry, geometry_out, normals_out, factors)
+        _write_geometry(g, Path(geometry).parent, geometry_out, normals_out, factors)
     write_exr(kd_out, {"RGB": kd.reshape(capture.grid.rows, capture.grid.cols, 3)},
               {"quantity": "kd (diffuse albedo), paper 002 eq. 9" + (
                   f" (the mean of the lowest {100 * settings.lowest:g} % of the qualifying samples)"
@@ -191,9 +192,11 @@ def _separate(capture: RectifiedCapture, settings: Settings, threads: int, scrat
         normals[tile], albedo[tile] = photometric_normals(b, wi, view, ok)
         glints[tile], contrast[tile] = highlight_normals(b, half_vector(wi, view[:, None, :]), ok)
 
+    diffuse = np.zeros(n_points, bool)        # points that tell their normal from the diffuse part
     if settings.shading_normals:
         map_frames(normal_tile, list(tiles(n_points)), threads, "separate: shading normals", unit="tile")
-        diffuse, glinting = diffuse_enough(albedo), contrast >= HIGHLIGHT_CONTRAST
+        diffuse = diffuse_enough(albedo)
+        glinting = contrast >= HIGHLIGHT_CONTRAST
         normals[:] = np.where((~diffuse & glinting)[:, None], glints, normals)
         normals[:], relief = relief_normals(normals, capture.visible & (diffuse | glinting))
         log.info("shading normals from the diffuse part at %.0f %% of the points, from highlights at %.0f %%",
@@ -201,7 +204,7 @@ def _separate(capture: RectifiedCapture, settings: Settings, threads: int, scrat
         log.info("shading normals: %s", relief)
     factors = None
     if intensities_from is not None:
-        factors = _light_factors(rho, valid, capture, normals, capture.visible & diffuse_enough(albedo),
+        factors = _light_factors(rho, valid, capture, normals, capture.visible & diffuse,
                                  intensities_from.get("reference_region"))
     scale = np.ones((n_frames, 3)) if factors is None else factors.rgb
     residuals = np.lib.format.open_memmap(specular_out, mode="w+", dtype=HALF, shape=(n_points, n_frames, 3))
@@ -209,10 +212,10 @@ def _separate(capture: RectifiedCapture, settings: Settings, threads: int, scrat
     def separate_tile(tile: slice) -> None:
         rho_tile, ok = np.asarray(rho[tile], float) / scale[None], np.asarray(valid[tile])
         wi, r2 = light_geometry(points[tile][:, None, :], capture.lights[None])
-        if settings.shading_normals:
-            rho_tile, ok = _in_shading_frame(rho_tile, wi, normals[tile], albedo[tile], ok)
-            valid[tile] = ok
         cos = np.einsum("pfk,pk->pf", wi, normals[tile])
+        if settings.shading_normals:
+            rho_tile, ok = _in_shading_frame(rho_tile, wi, cos, albedo[tile], ok)
+            valid[tile] = ok
         radiance = rho_tile * (np.clip(cos, 0, None) / r2)[..., None] * (capture.light_intensities * scale)[None]
         rho_d = diffuse_level(rho_tile, radiance, ok, settings.threshold, settings.lowest)
         kd[tile] = np.pi * rho_d
@@ -269,22 +272,21 @@ def uses_normals(setting: bool | str, capture: RectifiedCapture) -> bool:
     return bool(setting)
 
 
-def _in_shading_frame(rho: np.ndarray, wi: np.ndarray, normals: np.ndarray, albedo: np.ndarray,
+def _in_shading_frame(rho: np.ndarray, wi: np.ndarray, cos: np.ndarray, albedo: np.ndarray,
                       valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Eq. 8's samples of points (p, F, 3), read with the plane's normal, re-read in each point's shading frame,
-    rho = b / (n . i), b = rho (+z . i); and their validity: samples at or behind the point's facet
-    (n . i < MIN_COS) and in cast shadows (luminance below CAST_SHADOW x the diffuse part's albedo n . i) are
-    invalid."""
+    rho = b / (n . i), b = rho (+z . i) (``cos`` (p, F) = n . i); and their validity: samples at or behind the
+    point's facet (n . i < MIN_COS) and in cast shadows (luminance below CAST_SHADOW x the diffuse part's
+    albedo n . i) are invalid."""
     b = rho * np.clip(wi[..., 2], 0.0, None)[..., None]
-    cos = np.einsum("pfk,pk->pf", wi, normals)
     valid = valid & (cos > MIN_COS) & (b.mean(axis=-1) >= CAST_SHADOW * albedo[:, None] * cos)
     return np.where(valid[..., None], b / np.where(valid, cos, 1.0)[..., None], 0.0), valid
 
 
-def _write_geometry(geometry: str | Path, geometry_out: str | Path, normals_out: str | Path, factors) -> None:
-    """Rectify's geometry file with the shading normals and the estimated intensities (``factors``, or None),
-    its file names relative to ``geometry_out``'s folder."""
-    g, source, folder = read_json(geometry), Path(geometry).parent, Path(geometry_out).parent
+def _write_geometry(g: dict, source: Path, geometry_out: str | Path, normals_out: str | Path, factors) -> None:
+    """Rectify's geometry ``g`` (read from the folder ``source``) with the shading normals and the estimated
+    intensities (``factors``, or None), its file names relative to ``geometry_out``'s folder."""
+    g, folder = copy.deepcopy(g), Path(geometry_out).parent
     for q, frame in enumerate(g["frames"]):
         frame["file"] = os.path.relpath(source / frame["file"], folder)
         if factors is not None:
