@@ -1,7 +1,4 @@
 from facetsynth.stages import refine
-from facetsynth.stages.runner import run_stage
+from facetsynth.stages.runner import run_script
 
-i, o = snakemake.input, snakemake.output
-run_stage(snakemake, refine.run, model=i.model, geometry=i.geometry, specular=i.specular, valid=i.valid,
-          svbrdf_out=o.svbrdf, metrics_out=o.metrics, settings=refine.Settings.from_params(snakemake.params),
-          threads=snakemake.threads)
+run_script(snakemake, refine)

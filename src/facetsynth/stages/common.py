@@ -20,12 +20,33 @@ TILE_POINTS = 256  # points per tile: bounds the memory of every per-point stage
 
 
 class StageSettings:
-    """Base of a stage's frozen settings dataclass: one field per key of its config section."""
+    """Base of a stage's frozen settings dataclass: one field per key of its config section (and of the keys
+    its rule takes from other sections, under their config names); the defaults are the config's
+    (tests/test_config.py checks config/config.yaml against them)."""
 
     @classmethod
     def from_params(cls, params):
-        """From a rule's ``params`` (the config section's keys)."""
-        return cls(**{f.name: getattr(params, f.name) for f in fields(cls)})
+        """From a rule's ``params`` (the config section's keys); lists become tuples (a frozen settings object)."""
+        return cls(**{f.name: _frozen(getattr(params, f.name)) for f in fields(cls)})
+
+
+def _frozen(value):
+    return tuple(_frozen(v) for v in value) if isinstance(value, list) else value
+
+
+class RuleFiles:
+    """Base of a stage's ``Inputs`` and ``Outputs`` frozen dataclasses: one field per named file of its rule
+    (a list of paths for a named list); a field with a default may be missing from the rule."""
+
+    @classmethod
+    def from_rule(cls, files):
+        """From a rule's ``input`` or ``output`` (Snakemake's named list), by name."""
+        named = dict(files.items())
+        return cls(**{f.name: _path(named[f.name]) for f in fields(cls) if f.name in named})
+
+
+def _path(value):
+    return [Path(v) for v in value] if isinstance(value, (list, tuple)) else Path(value)
 
 
 @dataclass(frozen=True)

@@ -32,13 +32,29 @@ from ..params import normalise, projected_area
 from ..refine import NormalSums, best_turns, parabola_minimum, radiance_weights, solve, stretch
 
 from ..svbrdf import SVBRDF
-from .common import TILE_POINTS, RectifiedCapture, StageSettings, strided, tiles
+from .common import TILE_POINTS, RectifiedCapture, RuleFiles, StageSettings, strided, tiles
 from .params import spread_scores
 
 log = logging.getLogger(__name__)
 
 
 FIGURE_POINTS = 4096   # points (evenly strided) the fit's own figures are measured on
+
+
+@dataclass(frozen=True)
+class Inputs(RuleFiles):
+    """Rule ``refine``'s inputs: params' SVBRDF folder, separate's geometry and samples."""
+    model: Path
+    geometry: Path
+    specular: Path
+    valid: Path
+
+
+@dataclass(frozen=True)
+class Outputs(RuleFiles):
+    """Rule ``refine``'s outputs: the fitted SVBRDF folder and the fit's figures."""
+    svbrdf: Path
+    metrics: Path
 
 
 @dataclass(frozen=True)
@@ -390,18 +406,17 @@ def truth_scores(model: SVBRDF, capture: RectifiedCapture) -> dict:
     return {**out, **spread_scores(model, capture, truth)}
 
 
-def run(model: str | Path, geometry: str | Path, specular: str | Path, valid: str | Path,
-        svbrdf_out: str | Path, metrics_out: str | Path, settings: Settings = Settings(), threads: int = 1) -> None:
+def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threads: int = 1) -> None:
     """Load, fit, write: the refined SVBRDF folder and refine/metrics.json."""
-    capture = RectifiedCapture.load(geometry)
-    pipeline = SVBRDF.load(model)
+    capture = RectifiedCapture.load(inputs.geometry)
+    pipeline = SVBRDF.load(inputs.model)
     n = capture.n_points
-    spec, ok = read_npy(specular, mmap_mode="r"), read_npy(valid, mmap_mode="r")
-    for path, a in ((specular, spec), (valid, ok)):
+    spec, ok = read_npy(inputs.specular, mmap_mode="r"), read_npy(inputs.valid, mmap_mode="r")
+    for path, a in ((inputs.specular, spec), (inputs.valid, ok)):
         if a.shape[0] != n:
             raise InputError(path, f"has {a.shape[0]} rows, the rectified grid {n} points")
     refined, metrics = fit(pipeline, capture, spec, ok, settings, threads)
-    with atomic_dir(svbrdf_out) as staging:
+    with atomic_dir(outputs.svbrdf) as staging:
         refined.info = dict(pipeline.info, ks="ks, kd per point: eq. 6 fitted to the point's samples "
                                               "(facetsynth.stages.refine)",
                             refine={"eta_per_material": [{k: r[k] for k in ("material", "eta", "taken")}
@@ -410,7 +425,7 @@ def run(model: str | Path, geometry: str | Path, specular: str | Path, valid: st
                                                              for r in metrics["stretch"]],
                                     "note": "eta's intervals (eta.exr eta_lo, eta_hi; eta.intervals) are params' "
                                             "eq. 19 fit, before refine chose eta by the samples"})
-        refined.save(staging, provenance=dict(pipeline.info.get("provenance", {}), refine=str(model)))
+        refined.save(staging, provenance=dict(pipeline.info.get("provenance", {}), refine=str(inputs.model)))
     log.info("relative L2 on the fitting samples (radiance, rectified, %d points): %s -> %s (%d points fitted, "
              "%.1f s)", FIGURE_POINTS, metrics["fitting_samples_rel_l2_before"],
              metrics["fitting_samples_rel_l2_after"], metrics["points_fitted"], metrics["seconds"])
@@ -423,4 +438,4 @@ def run(model: str | Path, geometry: str | Path, specular: str | Path, valid: st
                  *(truth.get(k) for k in ("kd_median_rel_error", "ks_median_rel_error", "ndf_spread_max_median")),
                  *(truth.get(f"{k}_before") for k in ("kd_median_rel_error", "ks_median_rel_error",
                                                        "ndf_spread_max_median")))
-    write_json(metrics_out, {"ground_truth": capture.truth_scene is not None, **metrics, **truth})
+    write_json(outputs.metrics, {"ground_truth": capture.truth_scene is not None, **metrics, **truth})

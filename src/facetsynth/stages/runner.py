@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import sys
+from types import ModuleType
 from typing import Any, Callable
 
 from threadpoolctl import threadpool_limits
@@ -11,8 +12,16 @@ from threadpoolctl import threadpool_limits
 from ..errors import InputError
 
 
-def run_stage(snakemake: Any, stage: Callable[..., Any], **kwargs: Any) -> None:
-    """Call ``stage(**kwargs)`` with logging sent to the rule's log file.
+def run_script(snakemake: Any, stage: ModuleType) -> None:
+    """A stage module's ``run(inputs, outputs, settings, threads)`` from a Snakemake ``script:``: its
+    ``Inputs``, ``Outputs`` and ``Settings`` filled by name from the rule (:class:`facetsynth.stages.common.RuleFiles`,
+    :class:`~facetsynth.stages.common.StageSettings`), run by :func:`run_stage`."""
+    run_stage(snakemake, stage.run, stage.Inputs.from_rule(snakemake.input), stage.Outputs.from_rule(snakemake.output),
+              stage.Settings.from_params(snakemake.params), threads=snakemake.threads)
+
+
+def run_stage(snakemake: Any, stage: Callable[..., Any], *args: Any, **kwargs: Any) -> None:
+    """Call ``stage(*args, **kwargs)`` with logging sent to the rule's log file.
 
     Bad input (InputError) ends the job with one clear line naming the file
     and the problem, in the log and on stderr, instead of a traceback. BLAS
@@ -28,7 +37,7 @@ def run_stage(snakemake: Any, stage: Callable[..., Any], **kwargs: Any) -> None:
     log = logging.getLogger(f"facetsynth.{snakemake.rule}")
     try:
         with threadpool_limits(limits=snakemake.threads):      # BLAS keeps to the cores the job was given
-            stage(**kwargs)
+            stage(*args, **kwargs)
     except InputError as exc:
         log.error("%s", exc)
         print(f"facetsynth {snakemake.rule}: error: {exc}", file=sys.__stderr__)
