@@ -132,6 +132,12 @@ class Bilinear:
     ft: np.ndarray      # (..., N) weight of the t1 ring
     fp: np.ndarray      # (..., N) weight of the p1 sector
 
+    @property
+    def weights(self) -> np.ndarray:
+        """(4, ..., N) the bilinear weights of ``cells``."""
+        ft, fp = self.ft, self.fp
+        return np.stack([(1 - ft) * (1 - fp), (1 - ft) * fp, ft * (1 - fp), ft * fp])
+
     def __call__(self, f: np.ndarray) -> np.ndarray:
         """f (..., n_theta, n_phi) at the directions (..., N); leading dims broadcast."""
         flat = f.reshape(f.shape[:-2] + (-1,))

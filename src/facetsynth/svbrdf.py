@@ -93,29 +93,6 @@ def normal_problem(normal: np.ndarray, tol: float = NORMAL_UNIT_TOL) -> str | No
     return None
 
 
-def _bilinear(grid: DirectionGrid, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Flat cell indices (N, 4) and bilinear weights (N, 4) of directions d (N, 3) on ``grid``.
-
-    Same interpolation as :meth:`DirectionGrid.lookup` (periodic in phi,
-    theta clamped to the rings).
-    """
-    t, p = grid.coordinates(d)
-    t = np.clip(t, 0.0, grid.n_theta - 1.0)
-    if grid.n_theta > 1:
-        t0 = np.minimum(np.floor(t).astype(np.intp), grid.n_theta - 2)
-        ft = t - t0
-    else:
-        t0, ft = np.zeros(t.shape, np.intp), np.zeros(t.shape)
-    t1 = np.minimum(t0 + 1, grid.n_theta - 1)
-    p0 = np.floor(p).astype(np.intp)
-    fp = p - p0
-    p0 %= grid.n_phi
-    p1 = (p0 + 1) % grid.n_phi
-    cells = np.stack([t0 * grid.n_phi + p0, t0 * grid.n_phi + p1, t1 * grid.n_phi + p0, t1 * grid.n_phi + p1], -1)
-    weights = np.stack([(1 - ft) * (1 - fp), (1 - ft) * fp, ft * (1 - fp), ft * fp], -1)
-    return cells, weights
-
-
 @dataclass
 class SVBRDF:
     """A fitted SVBRDF in memory; :meth:`load` reads the folder, :meth:`eval` evaluates rho in 1/sr."""
@@ -283,7 +260,8 @@ class SVBRDF:
         (a material whose frame turns across the sample: a representative and a per-point turn, eq. 13)."""
         if self.rotation is not None:
             d = turn(d, self.rotation[index])
-        cells, bw = _bilinear(grid, d)
+        at = grid.bilinear(d)
+        cells, bw = np.moveaxis(at.cells, 0, -1), np.moveaxis(at.weights, 0, -1)     # (N, 4) each
         out = np.zeros(len(index))
         for k in range(self.neighbours.shape[1]):
             w = self.weights[index, k]

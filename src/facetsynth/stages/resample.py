@@ -27,7 +27,7 @@ from ..lightplane import LightTriangulation
 from ..pushpull import push_pull
 from ..sharpness import grid_resolution, lobe_widths
 from ..tables import join_tables, support_writer
-from .common import TILE_POINTS, RectifiedCapture, part_points, part_records, tiles
+from .common import TILE_POINTS, RectifiedCapture, StageSettings, part_points, part_records, tiles
 
 log = logging.getLogger(__name__)
 
@@ -54,16 +54,11 @@ def measured_sharpness(capture: RectifiedCapture, spec, ok, grazing_deg: float) 
 
 
 @dataclass(frozen=True)
-class Settings:
+class Settings(StageSettings):
     """The stage's knobs: config ``resample`` and ``partial_ndf.grazing_deg`` (workflow/schemas/config.schema.yaml)."""
     cells_per_lobe: float = 1.3               # elevation rings per narrow lobe half-width
     n_theta_range: tuple[int, int] = (16, 32)  # [min, max] rings
     grazing_deg: float = 80.0                 # lights beyond it are left out of the lobe widths (as in eq. 11)
-
-    @classmethod
-    def from_params(cls, params) -> "Settings":
-        """From a rule's ``params``."""
-        return cls(params.cells_per_lobe, tuple(params.n_theta_range), params.grazing_deg)
 
     def direction_grid(self, capture: RectifiedCapture, spec, ok) -> tuple[DirectionGrid, dict]:
         """The grid the measured lobes ask for, and the metrics saying why (the same in every scatter part:
