@@ -387,8 +387,9 @@ def samples_rel_l2(model: SVBRDF, capture: RectifiedCapture, specular, valid) ->
 
 
 def truth_scores(model: SVBRDF, capture: RectifiedCapture) -> dict:
-    """kd and ks of the written model against a virtual capture's truth (median relative error over the
-    visible points whose truth is eq. 6: ``MaterialMaps.analytic``, kd / ks > 0) and its NDF spread per
+    """kd, ks and ks F0 (ks F(eta) at normal incidence: ks and eta trade against each other, their product is
+    what a view measures best) of the written model against a virtual capture's truth (median relative
+    error over the visible points whose truth is eq. 6: ``MaterialMaps.analytic``, truth > 0) and its NDF spread per
     homogeneous region (:func:`facetsynth.stages.params.spread_scores`); {} for a real capture."""
     truth = capture.truth()
     if truth is None:
@@ -398,7 +399,10 @@ def truth_scores(model: SVBRDF, capture: RectifiedCapture) -> dict:
     if analytic is not None:
         on &= np.asarray(analytic, bool).reshape(on.shape)
     out = {}
-    for name, fitted, true in (("kd", model.kd, truth.kd), ("ks", model.ks, truth.ks)):
+    f0 = np.ones(1)      # ks F(eta) at normal incidence: the specular reflectance a renderer's F0 takes (eq. 3)
+    f0_fitted = model.ks * fresnel(f0, model.eta)[:, None]
+    f0_true = np.asarray(truth.ks, float).reshape(-1, 3) * fresnel(f0, np.asarray(truth.eta, float).ravel())[:, None]
+    for name, fitted, true in (("kd", model.kd, truth.kd), ("ks", model.ks, truth.ks), ("ks_f0", f0_fitted, f0_true)):
         t = np.asarray(true, float).reshape(-1, 3).mean(axis=1)
         sel = on & (t > 0)
         err = np.abs(fitted.mean(axis=1)[sel] - t[sel]) / t[sel]
@@ -433,7 +437,7 @@ def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threa
     if truth:
         before = truth_scores(pipeline, capture)
         truth.update({f"{k}_before": before[k] for k in ("kd_median_rel_error", "ks_median_rel_error",
-                                                           "ndf_spread_max_median")})
+                                                           "ks_f0_median_rel_error", "ndf_spread_max_median")})
         log.info("against the truth: kd %s, ks %s, largest NDF spread %s (before: %s, %s, %s)",
                  *(truth.get(k) for k in ("kd_median_rel_error", "ks_median_rel_error", "ndf_spread_max_median")),
                  *(truth.get(f"{k}_before") for k in ("kd_median_rel_error", "ks_median_rel_error",
