@@ -1,6 +1,7 @@
 # Two commands for a fresh machine with Python 3.11:
 #   make run   - set up .venv, install facetsynth, run the workflow on the demo sample
 #   make test  - set up .venv, install facetsynth with test extras, run the test suite
+#   make lint  - ruff (src, tests, scripts), snakefmt --check (rules), snakemake --lint read by its text (.ci/lint)
 #   make test-scenes - the slow whole-workflow tests: the scenes of issue 13 at native resolution, issue 4's
 #                synthesis scenes, the demo with its report and exports, the Mitsuba copper at 480 lights
 #                (about 27 min; CI runs them after make test)
@@ -30,7 +31,7 @@ BENCH_ARGS ?=
 SCALE_ARGS ?=
 REAL_ARGS ?=
 
-.PHONY: run test test-scenes test-cluster test-firmware bench bench-scale bench-real clean
+.PHONY: run lint test test-scenes test-cluster test-firmware bench bench-scale bench-real clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -53,6 +54,9 @@ run: $(VENV)/.installed-run
 
 test: $(VENV)/.installed-test
 	$(BIN)/python -m pytest -q
+
+lint: $(VENV)/.installed-test
+	BIN=$(BIN) .ci/lint
 
 test-scenes: $(VENV)/.installed-test
 	$(BIN)/python -m pytest -q -m scenes

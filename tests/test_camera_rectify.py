@@ -48,7 +48,9 @@ def test_plane_grid_mapping_round_trip_and_orientation():
 
 def test_warp_reproduces_a_smooth_plane_function(camera):
     grid = PlaneGrid(0.1, 0.1, 64, 64)
-    f = lambda xy: np.stack([10 * xy[..., 0] + 1, 20 * xy[..., 1] + 3, np.sin(60 * xy[..., 0]) + 2], -1)
+    def f(xy):
+        return np.stack([10 * xy[..., 0] + 1, 20 * xy[..., 1] + 3, np.sin(60 * xy[..., 0]) + 2], -1)
+
     rectified = warp_to_plane(f(camera.pixel_plane_points()), camera, grid)
     truth = f(grid.cell_centres())
     assert visible_cells(camera, grid).all()

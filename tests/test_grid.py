@@ -7,6 +7,7 @@ import numba
 import numpy as np
 import pytest
 
+from facetsynth import microfacet
 from facetsynth.grid import DirectionGrid, bilinear_at, polar_coordinates, turn
 
 
@@ -56,20 +57,26 @@ def test_lookup_reproduces_cell_centres_and_linear_functions():
     np.testing.assert_allclose(grid.bilinear(d).weights.sum(axis=0), 1.0, atol=1e-12)
 
 
-def test_solid_angles_and_integral():
-    """The cells tile the hemisphere (2 pi); the integral of cos(theta) is pi to the midpoint rule's
-    accuracy (second order in the ring width)."""
+def test_solid_angles_integrate_to_two_pi_and_cosine_to_pi():
     grid = DirectionGrid(32, 128)
-    assert grid.solid_angles.sum() == pytest.approx(2 * np.pi, rel=1e-12)
+    for g in (grid, DirectionGrid(7, 9)):
+        assert g.solid_angles.sum() == pytest.approx(2 * np.pi, rel=1e-12)
     assert grid.integrate(grid.directions[..., 2]) == pytest.approx(np.pi, rel=1e-3)
 
 
-def test_rotate_is_a_turn_of_the_directions():
-    """rotate(f, phi)(h) = f(R(phi) h) (eq. 13) for whole sectors exactly, and its inverse undoes it."""
-    grid = DirectionGrid(8, 32)
-    f = np.random.default_rng(4).random(grid.shape)
+def test_rotating_a_tabulated_ndf_is_rotating_its_frame_and_rotates_back():
+    """rotate(f, phi)(h) = f(R(phi) h) (eq. 13): exact for whole sectors, linear between them."""
+    grid = DirectionGrid(32, 128)
+
+    def table(phi):
+        return microfacet.ndf(grid.directions, 0.1, 0.4, phi)
+
     k = 5
-    rotated = grid.rotate(f, k * grid.d_phi)
-    d = grid.directions.reshape(-1, 3)
-    np.testing.assert_allclose(rotated.ravel(), grid.lookup(f, turn(d, k * grid.d_phi)), atol=1e-9)
-    np.testing.assert_array_equal(grid.rotate(rotated, -k * grid.d_phi), f)
+    np.testing.assert_allclose(grid.rotate(table(0.0), k * grid.d_phi), table(-k * grid.d_phi), rtol=1e-9)
+    np.testing.assert_array_equal(grid.rotate(grid.rotate(table(0.3), k * grid.d_phi), -k * grid.d_phi), table(0.3))
+    d = grid.directions
+    f = 1.0 + 0.5 * d[..., 0] + 0.3 * d[..., 1] ** 2 + d[..., 2]     # a fractional turn: linear along phi
+    back = grid.rotate(grid.rotate(f, 0.37), -0.37)
+    assert np.abs(back - f).max() < 1e-3
+    np.testing.assert_allclose(grid.rotate(f, k * grid.d_phi).ravel(),
+                               grid.lookup(f, turn(d.reshape(-1, 3), k * grid.d_phi)), atol=1e-9)

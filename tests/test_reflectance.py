@@ -1,4 +1,4 @@
-"""Direction grid, push-pull, separation (eqs. 8-9) and partial NDF (eqs. 5, 10-12) against ground truth."""
+"""Push-pull, separation (eqs. 8-9) and partial NDF (eqs. 5, 10-12) against ground truth."""
 
 import numpy as np
 import pytest
@@ -20,22 +20,6 @@ def random_directions(rng, shape):
     d = rng.normal(size=shape + (3,))
     d[..., 2] = np.abs(d[..., 2])
     return d / np.linalg.norm(d, axis=-1, keepdims=True)
-
-
-def test_grid_solid_angles_integrate_to_two_pi_and_cosine_to_pi():
-    for grid in (GRID, DirectionGrid(7, 9)):
-        assert grid.solid_angles.sum() == pytest.approx(2 * np.pi, rel=1e-12)
-    assert GRID.integrate(GRID.directions[..., 2]) == pytest.approx(np.pi, rel=1e-3)
-
-
-def test_rotating_a_tabulated_ndf_is_rotating_its_frame_and_rotates_back():
-    table = lambda phi: microfacet.ndf(GRID.directions, 0.1, 0.4, phi)
-    k = 5
-    np.testing.assert_allclose(GRID.rotate(table(0.0), k * GRID.d_phi), table(-k * GRID.d_phi), rtol=1e-9)
-    np.testing.assert_array_equal(GRID.rotate(GRID.rotate(table(0.3), k * GRID.d_phi), -k * GRID.d_phi), table(0.3))
-    f = smooth(GRID.directions)                 # a fractional rotation: linear interpolation along phi
-    back = GRID.rotate(GRID.rotate(f, 0.37), -0.37)
-    assert np.abs(back - f).max() < 1e-3
 
 
 def test_push_pull_reproduces_a_smooth_function_from_scattered_samples():

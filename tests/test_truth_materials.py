@@ -133,7 +133,6 @@ def test_height_correlated_rho_is_eq6_with_g2(kind):
     ref = kd / np.pi + ks * (mf.ndf(h, au, av, pf, kind) * f * g2 / (4 * wi[:, 2] * wo[:, 2]))[:, None]
     got = mf.rho_extended(wi, wo, kd, ks, eta, au, av, pf, kind, correlated=True)
     np.testing.assert_allclose(got, ref, rtol=1e-9)
-    sep = mf.rho(wi, wo, kd, ks, eta, au, av, pf, kind)
     spec = mf.rho_extended(wi, wo, 0.0, ks, eta, au, av, pf, kind, correlated=True)[:, 0]
     spec_sep = mf.rho(wi, wo, 0.0, ks, eta, au, av, pf, kind)[:, 0]
     lit = spec_sep > 1e-6

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from facetsynth import manifest, selfcheck, tables
+from facetsynth import selfcheck, tables
 from facetsynth.fileio import read_rgb, write_exr
 from facetsynth.stages.common import RectifiedCapture
 from facetsynth.svbrdf import SVBRDF

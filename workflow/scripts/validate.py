@@ -1,4 +1,3 @@
-from pathlib import Path
 
 from facetsynth.stages import validate
 from facetsynth.stages.runner import run_stage

@@ -26,7 +26,7 @@ from ..camera import Camera
 from ..fileio import atomic_dir, write_exr, write_json
 from ..render import expose
 from ..virtual_rig import VirtualRig
-from .checkerboard import Board, board_to_world
+from .checkerboard import Board
 from .photometric import shading
 
 log = logging.getLogger(__name__)

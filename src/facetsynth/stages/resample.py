@@ -67,7 +67,7 @@ class Settings(StageSettings):
         narrow = sharpness["narrow_half_width_deg"]
         n_theta, n_phi = grid_resolution(np.nan if narrow is None else narrow, self.cells_per_lobe,
                                          tuple(self.n_theta_range))
-        reason = (f"no resolved specular lobe: the coarsest grid" if narrow is None else
+        reason = ("no resolved specular lobe: the coarsest grid" if narrow is None else
                   f"narrow lobe half-width {narrow:.2f} deg (median of {sharpness['points_with_a_lobe']} points) x "
                   f"{self.cells_per_lobe} rings per half-width, n_theta in {list(self.n_theta_range)}")
         return DirectionGrid(n_theta, n_phi), {**sharpness, "n_theta": n_theta, "n_phi": n_phi,

@@ -227,7 +227,6 @@ def _separate(capture: RectifiedCapture, settings: Settings, threads: int, scrat
 
     map_frames(separate_tile, list(tiles(n_points)), threads, "separate: eq. 9", unit="tile")
     residuals.flush()
-    del rho, valid, residuals
     return kd, signal, normals, factors
 
 
