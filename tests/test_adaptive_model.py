@@ -112,11 +112,15 @@ def test_card_runs_no_synthesis_search_and_loses_nothing(card_run, tmp_path):
         (card_run / "results/card/logs/synthesize.log").read_text()
     res = card_run / "results/card"
     searched = tmp_path / "metrics.json"
-    synthesize.run(res / "rectify/geometry.json", res / "partial_ndf/ndf", res / "resample/grid.json", res / "cluster/representatives.npy", res / "cluster/neighbours.npy",
-                   res / "cluster/weights.npy", tmp_path / "ndf.npy", tmp_path / "confidence.npy",
-                   tmp_path / "cosine.npy", tmp_path / "grid.json", searched, isotropic_threshold=0.0,
-                   rep_ndf=res / "cluster/representative_ndf.npy",
-                   rep_confidence=res / "cluster/representative_confidence.npy")
+    synthesize.run(synthesize.Inputs(geometry=res / "rectify/geometry.json", ndf=res / "partial_ndf/ndf",
+                                     grid=res / "resample/grid.json", representatives=res / "cluster/representatives.npy",
+                                     neighbours=res / "cluster/neighbours.npy", weights=res / "cluster/weights.npy",
+                                     rep_ndf=res / "cluster/representative_ndf.npy",
+                                     rep_confidence=res / "cluster/representative_confidence.npy"),
+                   synthesize.Outputs(ndf=tmp_path / "ndf.npy", confidence=tmp_path / "confidence.npy",
+                                      fresnel_cosine=tmp_path / "cosine.npy", grid=tmp_path / "grid.json",
+                                      metrics=searched),
+                   synthesize.Settings(isotropic_threshold=0.0))
     s = json.loads(searched.read_text())
     assert s["search_skipped"] is False and s["isotropic_representatives"] == 0 and s["merges"] > 0
     assert m["ndf_rel_l2_median"] <= s["ndf_rel_l2_median"] + 0.01

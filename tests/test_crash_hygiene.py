@@ -110,7 +110,8 @@ def work(tmp_path_factory, repo):
               "grid_path": ref / "resample/grid.json"}
     separate.run(geometry=inputs["geometry"], kd_out=ref / "separate/kd.exr",
                  specular_out=ref / "separate/specular.npy",
-                 valid_out=ref / "separate/valid.npy", metrics_out=ref / "separate/metrics.json")
+                 valid_out=ref / "separate/valid.npy", metrics_out=ref / "separate/metrics.json",
+                 settings=separate.Settings(heldout_every=0))
     resample.run(geometry=inputs["geometry"], specular=ref / "separate/specular.npy", valid=ref / "separate/valid.npy",
                  slice_out=inputs["slice_path"],
                  colour_out=ref / "resample/colour.npy", grid_out=inputs["grid_path"],

@@ -190,7 +190,8 @@ def run_per_point_stages(root: Path, geometry: Path, n_theta: int = 32,
             f[f"{stage}/{n}"] = root / stage / n
     f["svbrdf"] = root / "svbrdf"
     st_separate.run(geometry=geometry, kd_out=f["separate/kd.exr"], specular_out=f["separate/specular.npy"],
-         valid_out=f["separate/valid.npy"], metrics_out=f["separate/metrics.json"])
+         valid_out=f["separate/valid.npy"], metrics_out=f["separate/metrics.json"],
+         settings=st_separate.Settings(heldout_every=0))
     st_resample.run(geometry=geometry, specular=f["separate/specular.npy"], valid=f["separate/valid.npy"],
          slice_out=f["resample/slice"],
          colour_out=f["resample/specular_colour.npy"], grid_out=f["resample/grid.json"],
@@ -199,28 +200,29 @@ def run_per_point_stages(root: Path, geometry: Path, n_theta: int = 32,
          grid_path=f["resample/grid.json"], ndf_out=f["partial_ndf/ndf"],
          metrics_out=f["partial_ndf/metrics.json"],
          settings=st_pndf.Settings(per_point_view=True))
-    st_cluster.run(geometry=geometry, ndf=f["partial_ndf/ndf"],
-         grid_path=f["resample/grid.json"], specular=f["separate/specular.npy"], valid=f["separate/valid.npy"],
-         kd=f["separate/kd.exr"],
-         labels_out=f["cluster/labels.npy"],
-         representatives_out=f["cluster/representatives.npy"], neighbours_out=f["cluster/neighbours.npy"],
-         weights_out=f["cluster/weights.npy"], rep_ndf_out=f["cluster/representative_ndf.npy"],
-         rep_confidence_out=f["cluster/representative_confidence.npy"], rotation_out=f["cluster/rotation.npy"],
-         metrics_out=f["cluster/metrics.json"],
-         min_representatives=min_representatives, n_init=1)
-    st_synth.run(geometry=geometry, ndf=f["partial_ndf/ndf"],
-         grid_path=f["resample/grid.json"], representatives=f["cluster/representatives.npy"],
+    st_cluster.run(st_cluster.Inputs(geometry=geometry, ndf=f["partial_ndf/ndf"],
+         grid=f["resample/grid.json"], specular=f["separate/specular.npy"], valid=f["separate/valid.npy"],
+         kd=f["separate/kd.exr"]),
+         st_cluster.Outputs(labels=f["cluster/labels.npy"],
+         representatives=f["cluster/representatives.npy"], neighbours=f["cluster/neighbours.npy"],
+         weights=f["cluster/weights.npy"], rep_ndf=f["cluster/representative_ndf.npy"],
+         rep_confidence=f["cluster/representative_confidence.npy"], rotation=f["cluster/rotation.npy"],
+         metrics=f["cluster/metrics.json"]),
+         st_cluster.Settings(min_representatives=min_representatives, n_init=1))
+    st_synth.run(st_synth.Inputs(geometry=geometry, ndf=f["partial_ndf/ndf"],
+         grid=f["resample/grid.json"], representatives=f["cluster/representatives.npy"],
          neighbours=f["cluster/neighbours.npy"], weights=f["cluster/weights.npy"],
-         rep_ndf=f["cluster/representative_ndf.npy"], rep_confidence=f["cluster/representative_confidence.npy"],
-         ndf_out=f["synthesize/ndf.npy"],
-         confidence_out=f["synthesize/confidence.npy"], cosine_out=f["synthesize/cosine.npy"],
-         grid_out=f["synthesize/grid.json"], metrics_out=f["synthesize/metrics.json"])
-    st_params.run(geometry=geometry, kd_path=f["separate/kd.exr"], specular=f["separate/specular.npy"],
+         rep_ndf=f["cluster/representative_ndf.npy"], rep_confidence=f["cluster/representative_confidence.npy"]),
+         st_synth.Outputs(ndf=f["synthesize/ndf.npy"], confidence=f["synthesize/confidence.npy"],
+         fresnel_cosine=f["synthesize/cosine.npy"], grid=f["synthesize/grid.json"],
+         metrics=f["synthesize/metrics.json"]))
+    st_params.run(st_params.Inputs(geometry=geometry, kd=f["separate/kd.exr"], specular=f["separate/specular.npy"],
          valid=f["separate/valid.npy"], colour=f["resample/specular_colour.npy"],
          representatives=f["cluster/representatives.npy"], neighbours=f["cluster/neighbours.npy"],
          weights=f["cluster/weights.npy"], ndf=f["synthesize/ndf.npy"], fresnel_cosine=f["synthesize/cosine.npy"],
          synthesis_confidence=f["synthesize/confidence.npy"],
-         grid_path=f["synthesize/grid.json"], rotation=f["cluster/rotation.npy"], svbrdf_out=f["svbrdf"], metrics_out=f["params/metrics.json"])
+         grid=f["synthesize/grid.json"], rotation=f["cluster/rotation.npy"]),
+         st_params.Outputs(svbrdf=f["svbrdf"], metrics=f["params/metrics.json"]))
     return f
 
 
@@ -497,7 +499,8 @@ def test_separate_stage_refuses_a_nan_frame_naming_the_pixel(tmp_path):
     geometry = write_rectified(tmp_path / "cap", one_material((0.2,) * 3, (0.5,) * 3), PlaneGrid(0.1, 0.1, 4, 4),
                                rig_lights(3, 3), damage=damage)
     with pytest.raises(InputError, match=r"0003\.exr.*1 pixel\(s\) are NaN or Inf \(first at row 2, col 1\)"):
-        separate.run(geometry, tmp_path / "kd.exr", tmp_path / "s.npy", tmp_path / "v.npy", tmp_path / "m.json")
+        separate.run(geometry, tmp_path / "kd.exr", tmp_path / "s.npy", tmp_path / "v.npy", tmp_path / "m.json",
+                     separate.Settings(heldout_every=0))
     assert not (tmp_path / "kd.exr").exists() and not (tmp_path / "s.npy").exists()
 
 
@@ -516,7 +519,8 @@ def test_saturated_and_nan_samples_are_invalid_and_kd_comes_from_the_rest(tmp_pa
 
     geometry = write_rectified(tmp_path / "cap", one_material(kd, (0.4,) * 3), PlaneGrid(0.1, 0.1, 3, 3),
                                rig_lights(5, 5), damage=damage)
-    separate.run(geometry, tmp_path / "kd.exr", tmp_path / "s.npy", tmp_path / "v.npy", tmp_path / "m.json")
+    separate.run(geometry, tmp_path / "kd.exr", tmp_path / "s.npy", tmp_path / "v.npy", tmp_path / "m.json",
+                 separate.Settings(heldout_every=0))
     got = read_exr(tmp_path / "kd.exr")[0]["RGB"].reshape(-1, 3)
     valid = np.load(tmp_path / "v.npy")
     assert valid[4, 1::2].all() and not valid[4, 0::2].any() and valid[[0, 1, 2, 3, 5, 6, 7, 8]].all()
@@ -901,19 +905,19 @@ def test_identical_ndfs_everywhere_through_the_stages(tmp_path):
         write(np.repeat(w, 25, 0) > 0, ndf=np.repeat(d, 25, 0), confidence=np.repeat(w, 25, 0))
     write_json(tmp_path / "grid.json", SGRID.to_dict())
     out = tmp_path / "out"
-    st_cluster.run(geometry=geometry, ndf=tmp_path / "partial",
-         grid_path=tmp_path / "grid.json", specular=None, valid=None, labels_out=out / "labels.npy",
-         representatives_out=out / "reps.npy", neighbours_out=out / "nbr.npy", weights_out=out / "wts.npy",
-         rep_ndf_out=out / "rep_ndf.npy", rep_confidence_out=out / "rep_conf.npy", rotation_out=out / "rotation.npy",
-         metrics_out=out / "cluster.json")
+    st_cluster.run(st_cluster.Inputs(geometry=geometry, ndf=tmp_path / "partial", grid=tmp_path / "grid.json"),
+         st_cluster.Outputs(labels=out / "labels.npy",
+         representatives=out / "reps.npy", neighbours=out / "nbr.npy", weights=out / "wts.npy",
+         rep_ndf=out / "rep_ndf.npy", rep_confidence=out / "rep_conf.npy", rotation=out / "rotation.npy",
+         metrics=out / "cluster.json"))
     m = metrics_of(out / "cluster.json")
     assert m["distinct_ndfs"] == 1 and m["representatives"] == 1 and m["lambda"] is None
     wts = np.load(out / "wts.npy")
     assert np.all(np.load(out / "labels.npy") == 0) and np.all(wts[:, 0] == 1) and np.all(wts[:, 1:] == 0)
-    st_synth.run(geometry=geometry, ndf=tmp_path / "partial",
-         grid_path=tmp_path / "grid.json", representatives=out / "reps.npy", neighbours=out / "nbr.npy",
-         weights=out / "wts.npy", ndf_out=out / "ndf.npy", confidence_out=out / "w.npy", cosine_out=out / "cos.npy",
-         grid_out=out / "grid.json", metrics_out=out / "synth.json")
+    st_synth.run(st_synth.Inputs(geometry=geometry, ndf=tmp_path / "partial",
+         grid=tmp_path / "grid.json", representatives=out / "reps.npy", neighbours=out / "nbr.npy",
+         weights=out / "wts.npy"), st_synth.Outputs(ndf=out / "ndf.npy", confidence=out / "w.npy",
+         fresnel_cosine=out / "cos.npy", grid=out / "grid.json", metrics=out / "synth.json"))
     table, conf = np.load(out / "ndf.npy"), np.load(out / "w.npy")
     assert table.shape == (1,) + SGRID.shape and np.isfinite(table).all() and (table >= 0).all()
     covered = conf[0] > 0
@@ -964,7 +968,10 @@ def test_float32_and_float64_runs_agree():
         dd, ww = pd.astype(dt), pw.astype(dt)
         km = cluster.kmeans(cluster.features(dd, ww, SGRID), dd, ww, SGRID, 4, seed=0)
         spectra = syn.ExemplarSpectra(dd, ww, SGRID)
-        done = syn.complete(dd[0], ww[0], spectra, dd, ww, SGRID, syn.hemisphere_target(ww[0] > 0, SGRID), exclude=0)
+        done = syn.complete(dd[0], ww[0], spectra, dd, ww, SGRID, syn.hemisphere_target(ww[0] > 0, SGRID),
+                            syn.Knobs(overlap_range=(0.5, 0.85), max_iterations=12, target_coverage=0.99,
+                                      max_relative_error=0.4, candidates_per_region=5, fill_overlap=None,
+                                      extend_rings=False), exclude=0)
         runs[dt] = (km, done)
     (k32, c32), (k64, c64) = runs[np.float32], runs[np.float64]
     np.testing.assert_array_equal(k32.labels, k64.labels)

@@ -191,15 +191,15 @@ def write_standin(folder, fresnel_in_ndf="lobe"):
     return folder, truth
 
 
-def run_params(folder, **kw):
+def run_params(folder, **settings):
     from facetsynth.stages import params as stage
-    stage.run(geometry=folder / "geometry.json", kd_path=folder / "kd.exr", specular=folder / "specular.npy",
-              valid=folder / "valid.npy", colour=folder / "colour.npy",
-              representatives=folder / "representatives.npy", neighbours=folder / "neighbours.npy",
-              weights=folder / "weights.npy", ndf=folder / "ndf.npy", fresnel_cosine=folder / "fresnel_cosine.npy",
-              synthesis_confidence=folder / "confidence.npy",
-              grid_path=folder / "grid.json",
-              svbrdf_out=folder / "svbrdf", metrics_out=folder / "metrics.json", **kw)
+    stage.run(stage.Inputs(geometry=folder / "geometry.json", kd=folder / "kd.exr", specular=folder / "specular.npy",
+                           valid=folder / "valid.npy", colour=folder / "colour.npy",
+                           representatives=folder / "representatives.npy", neighbours=folder / "neighbours.npy",
+                           weights=folder / "weights.npy", ndf=folder / "ndf.npy",
+                           fresnel_cosine=folder / "fresnel_cosine.npy",
+                           synthesis_confidence=folder / "confidence.npy", grid=folder / "grid.json"),
+              stage.Outputs(svbrdf=folder / "svbrdf", metrics=folder / "metrics.json"), stage.Settings(**settings))
     import json
     return json.loads((folder / "metrics.json").read_text())
 

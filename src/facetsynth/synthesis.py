@@ -325,7 +325,7 @@ class HistogramSearch:
     """
 
     def __init__(self, d: np.ndarray, mask: np.ndarray, grid: DirectionGrid, shifts: np.ndarray,
-                 buckets: int = 32, seed: int = 0, n_neighbors: int = 30, epsilon: float = 0.2, exact: bool = False):
+                 *, buckets: int, seed: int, n_neighbors: int, epsilon: float, exact: bool = False):
         self.grid, self.buckets, self.exact, self.epsilon = grid, buckets, exact, epsilon
         shifts = np.unique(np.round(np.asarray(shifts, float)).astype(int))
         self.shifts = shifts
@@ -414,6 +414,20 @@ class Completion:
     merges: list = field(default_factory=list)   # dicts: exemplar, shift, relative_error, overlap, merged
     fallbacks: int = 0               # ANN iterations that fell back to the exact search
     fresnel_cosine: np.ndarray | None = None   # (T, F) cosine of the Fresnel factor each cell carries
+
+
+@dataclass(frozen=True)
+class Knobs:
+    """What :func:`complete` merges and stops by (sec. 5.2-5.3). No defaults: the synthesize stage's
+    ``Settings`` (config ``synthesize``) holds them."""
+    overlap_range: tuple[float, float]   # a candidate's domain overlaps the current one by this share of its own
+    max_iterations: int                  # merges at most
+    target_coverage: float               # stop once this fraction of the target is covered
+    max_relative_error: float            # a best match less similar (eq. 15, relative) stalls the synthesis
+    candidates_per_region: int           # ANN matches per overlap region (sec. 5.3)
+    fill_overlap: float | None           # the upper overlap bound relaxed to this for the last holes; None: off
+    extend_rings: bool                   # beyond reach: log-linear extension (else the last ring held)
+    refine: bool = True                  # the best whole-sector shift refined below a sector (tests: off)
 
 
 def _refine(ed: np.ndarray, ew: np.ndarray, shift: int, d, w, grid, lo: float, hi: float) -> tuple[float, Match, float]:
@@ -555,144 +569,145 @@ def complete_isotropic(d0: np.ndarray, w0: np.ndarray, grid: DirectionGrid, targ
         c, _ = ring_means(fresnel_cosine(view, grid), w0, grid)
         cosine = np.broadcast_to(c[:, None], grid.shape)
         cosine = np.clip(np.nan_to_num(push_pull(full * cosine, full), nan=0.0), 0.0, 1.0)
-    om = grid.solid_angles
-    covered_area = float(np.sum(((w > SUPPORT) & target) * om)) / max(float(np.sum(target * om)), TINY)
-    return Completion(ndf=filled, confidence=w, coverage=covered_area, iterations=0, stalled=False,
+    return Completion(ndf=filled, confidence=w, coverage=coverage(w, target, grid), iterations=0, stalled=False,
                       merges=[], fallbacks=0, fresnel_cosine=cosine)
 
 
 def complete(d0: np.ndarray, w0: np.ndarray, spectra: ExemplarSpectra, exemplars_d: np.ndarray,
-             exemplars_w: np.ndarray, grid: DirectionGrid, target: np.ndarray, *, search: HistogramSearch | None = None,
-             overlap_range: tuple[float, float] = (0.5, 0.85), max_iterations: int = 12,
-             target_coverage: float = 0.99, max_relative_error: float = 0.4, candidates_per_region: int = 5,
-             fill_overlap: float | None = None, refine: bool = True, extend_rings: bool = False,
-             phi_window: int | None = None, fallback_exact: bool = True, exclude: int | None = None,
+             exemplars_w: np.ndarray, grid: DirectionGrid, target: np.ndarray, knobs: Knobs, *,
+             search: HistogramSearch | None = None, exclude: int | None = None,
              view: np.ndarray | None = None, exemplars_view: np.ndarray | None = None) -> Completion:
     """Complete one partial NDF <d0, w0> (T, F) by iterative synthesis (sec. 5.2).
 
-    Each iteration finds the exemplar and rotation minimising eq. 15 against
-    the current tuple among those whose domain overlaps the current domain by
-    ``overlap_range`` (fraction of the exemplar's domain), then merges it
-    (eqs. 16-17). Exact search (``search`` None) scores every exemplar at every
-    whole-sector shift; with ``search``, only the ANN candidates of sec. 5.3
-    (both ends of the covered arc: the periodic wrap) are scored, each at
-    every whole-sector rotation (eq. 14 minimised over phi for each
-    candidate; ``phi_window``: only within that many sectors of the rotation
-    its region predicts). The best shift is then refined below a sector.
-    If the ANN candidates hold no acceptable match (``fallback_exact``), that
-    iteration is searched exhaustively, so that a stall always means that
-    no exemplar at all matches. A best match whose relative error
-    (``Match.relative``) exceeds ``max_relative_error`` is not merged: the
-    synthesis stops (stalled) rather than merge dissimilar data. When no
-    candidate passes the overlap rule while the target is not yet covered
-    (thin holes in the outer rings, which no candidate can extend by 15 % of
-    its domain), the upper bound is relaxed to ``fill_overlap`` (None: the
-    paper's rule only, see docs/decisions.md). Ends when
-    ``target_coverage`` of ``target`` is covered or after ``max_iterations``;
-    holes are then filled by push-pull (weights W), and the rings beyond the
-    reach of rotation (``target``) by :func:`extend_beyond_reach` (with
-    ``extend_rings``; else :func:`hold_beyond_reach`, the last ring held). ``exclude``: an exemplar
-    row not to use at all (tests: the query itself).
+    Each iteration merges (eqs. 16-17) the exemplar and rotation minimising eq. 14 against the current
+    tuple among those whose domain overlaps the current one as ``knobs.overlap_range`` asks
+    (:func:`next_match`: the exact search, or the ANN candidates of ``search``, sec. 5.3). A best match
+    whose relative error (``Match.relative``) exceeds ``knobs.max_relative_error`` is not merged: the
+    synthesis stops (stalled) rather than merge dissimilar data. It ends when ``knobs.target_coverage`` of
+    ``target`` is covered, after ``knobs.max_iterations`` merges, or when no candidate overlaps as the rule
+    asks; holes and the rings beyond the reach of rotation are then filled (:func:`fill_holes`). ``exclude``:
+    an exemplar row not to use at all (tests: the query itself).
 
-    With ``view`` (the query's view o, (3,)) and ``exemplars_view`` (N, 3),
-    the cosine |o . h| of the Fresnel factor that eq. 11 leaves in each cell
-    is carried along: rotated with each merged exemplar and merged with the
-    weights of eq. 16 (``Completion.fresnel_cosine``), so that sec. 5.4 can
-    divide the right F out of every cell (docs/decisions.md).
+    With ``view`` (the query's view o, (3,)) and ``exemplars_view`` (N, 3), the cosine |o . h| of the
+    Fresnel factor that eq. 11 leaves in each cell is carried along: rotated with each merged exemplar and
+    merged with the weights of eq. 16 (``Completion.fresnel_cosine``), so that sec. 5.4 can divide the
+    right F out of every cell (docs/decisions.md).
     """
-    lo, hi = overlap_range
     d, w = np.asarray(d0, float).copy(), np.clip(np.asarray(w0, float), 0.0, None).copy()
     cosine = None if view is None else fresnel_cosine(view, grid)
-    om = grid.solid_angles
-    n_phi = grid.n_phi
-    target_area = float(np.sum(target * om))
-
-    def coverage():
-        return float(np.sum(((w > SUPPORT) & target) * om)) / max(target_area, TINY)
-
-    merges = []
-    stalled = False
-    fallbacks = 0
-    upper = lower = 0.0          # positions (sectors, unwrapped) of the pieces at the ends of the covered arc
-    iterations = 0
-
-    def best(use_search):
-        """The best acceptable (row, whole shift, upper overlap bound used) under eq. 14, or None."""
-        if use_search is None:
-            match, frac = spectra.scores(d, w)
-            rows = np.arange(len(spectra))
-            allowed = np.ones(match.distance.shape, bool)
-        else:
-            cands = use_search.query(d, upper, lower, candidates_per_region)
-            rows = np.unique([r for r, _ in cands]).astype(int)
-            if rows.size == 0:
-                return None
-            match, frac = spectra.scores(d, w, rows)
-            allowed = np.ones(match.distance.shape, bool)
-            if phi_window is not None:
-                allowed[:] = False
-                pos = {r: i for i, r in enumerate(rows)}
-                for r, c in cands:
-                    allowed[pos[r], (c + np.arange(-phi_window, phi_window + 1)) % n_phi] = True
-        if exclude is not None:
-            allowed[rows == exclude] = False
-        for bound in (hi, fill_overlap) if fill_overlap and fill_overlap > hi else (hi,):
-            ok = allowed & (frac >= lo) & (frac <= bound) & np.isfinite(match.distance)
-            cost = np.where(ok, match.distance, np.inf)
-            if cost.size and np.isfinite(cost.min()):
-                i, shift = divmod(int(np.argmin(cost)), n_phi)
-                return int(rows[i]), int(shift), bound
-        return None
-
-    def evaluate(choice):
-        row, shift, bound = choice
-        ed, ew = np.asarray(exemplars_d[row], float), np.asarray(exemplars_w[row], float)
-        if refine:
-            s, m, f = _refine(ed, ew, shift, d, w, grid, lo, bound)
-        else:
-            s = float(shift)
-            dc, wc = rotate_tuple(ed, ew, grid, s)
-            m = distance(d, w, dc, wc, grid)
-            f = float(m.overlap / max(np.sum((wc > SUPPORT) * om), TINY))
-        return ed, ew, s, m, f
-
-    while iterations < max_iterations and coverage() < target_coverage:
-        choice = best(search)
-        result = None if choice is None else evaluate(choice)
-        missed = result is None or not (float(result[3].relative) <= max_relative_error)   # inf and nan miss
-        if search is not None and fallback_exact and missed:
-            fallbacks += 1                   # the ANN candidates missed: this iteration searches exhaustively
-            choice = best(None)
-            result = None if choice is None else evaluate(choice)
-        if result is None:
-            break   # nothing overlaps by lo..hi: the domain is as complete as merging can make it
-        ed, ew, s, m, f = result
-        row, bound = choice[0], choice[2]
-        if not np.isfinite(m.distance) or float(m.relative) > max_relative_error:
+    merges, stalled, fallbacks, iterations = [], False, 0, 0
+    arc = (0.0, 0.0)    # positions (sectors, unwrapped) of the pieces at the upper and lower end of the covered arc
+    while iterations < knobs.max_iterations and coverage(w, target, grid) < knobs.target_coverage:
+        found, fell_back = next_match(d, w, spectra, exemplars_d, exemplars_w, knobs, search, arc, exclude)
+        fallbacks += fell_back
+        if found is None:
+            break       # nothing overlaps as the rule asks: the domain is as complete as merging can make it
+        row, bound, s, m, f = found
+        record = {"exemplar": row, "shift": s, "relative_error": float(m.relative), "overlap": f}
+        if not np.isfinite(m.distance) or float(m.relative) > knobs.max_relative_error:
             stalled = True
-            merges.append({"exemplar": row, "shift": s, "relative_error": float(m.relative), "overlap": f,
-                           "merged": False})
+            merges.append({**record, "merged": False})
             break
-        dc, wc = rotate_tuple(ed, ew, grid, s)
+        dc, wc = rotate_tuple(np.asarray(exemplars_d[row], float), np.asarray(exemplars_w[row], float), grid, s)
         if cosine is not None:
             cosine_c = grid.rotate(fresnel_cosine(exemplars_view[row], grid), s * grid.d_phi)
             cosine = merge(cosine, w, cosine_c, wc, 1.0)[0]
         d, w = merge(d, w, dc, wc, float(m.s1 / m.s2))
-        merges.append({"exemplar": row, "shift": s, "relative_error": float(m.relative), "overlap": f,
-                       "merged": True, "fill": bound > hi})
+        merges.append({**record, "merged": True, "fill": bound > knobs.overlap_range[1]})
         iterations += 1
-        # the merged piece's domain sits at position -s: it extends the nearer end of the arc
-        position = (-s) % n_phi
-        up, down = (position - upper) % n_phi, (lower - position) % n_phi
-        if up <= down:
-            upper += up
-        else:
-            lower -= down
-    covered = coverage()
-    filled = push_pull(w * d, w)
-    filled = np.where(np.isfinite(filled), np.maximum(filled, 0.0), 0.0)
-    filled = extend_beyond_reach(filled, target, grid) if extend_rings else hold_beyond_reach(filled, target)
+        arc = extend_arc(arc, s, grid.n_phi)
+    ndf, cosine = fill_holes(d, w, cosine, target, grid, knobs.extend_rings)
+    return Completion(ndf=ndf, confidence=w, coverage=coverage(w, target, grid), iterations=iterations,
+                      stalled=stalled, merges=merges, fallbacks=fallbacks, fresnel_cosine=cosine)
+
+
+def coverage(w: np.ndarray, target: np.ndarray, grid: DirectionGrid) -> float:
+    """The fraction (by solid angle) of ``target`` inside the domain Omega = {W > 0} of ``w`` (T, F)."""
+    om = grid.solid_angles
+    return float(np.sum(((w > SUPPORT) & target) * om)) / max(float(np.sum(target * om)), TINY)
+
+
+def next_match(d: np.ndarray, w: np.ndarray, spectra: ExemplarSpectra, exemplars_d: np.ndarray,
+               exemplars_w: np.ndarray, knobs: Knobs, search: HistogramSearch | None, arc: tuple[float, float],
+               exclude: int | None) -> tuple[tuple | None, bool]:
+    """One iteration's match, (row, overlap bound used, shift, Match, overlap fraction) or None
+    (:func:`best_match`, then :func:`aligned_match`), and whether the exact search stood in for ``search``:
+    where the ANN candidates hold no acceptable match, the iteration is searched exhaustively, so that a
+    stall always means that no exemplar at all matches."""
+    def found(use_search):
+        choice = best_match(d, w, spectra, knobs, use_search, arc, exclude)
+        return None if choice is None else aligned_match(choice, exemplars_d, exemplars_w, d, w, spectra.grid, knobs)
+
+    result = found(search)
+    if search is not None and (result is None or not float(result[3].relative) <= knobs.max_relative_error):
+        return found(None), True        # inf and nan miss
+    return result, False
+
+
+def best_match(d: np.ndarray, w: np.ndarray, spectra: ExemplarSpectra, knobs: Knobs,
+               search: HistogramSearch | None, arc: tuple[float, float],
+               exclude: int | None) -> tuple[int, int, float] | None:
+    """The best acceptable (row, whole shift, upper overlap bound used) under eq. 14, or None.
+
+    The exact search (``search`` None) scores every exemplar at every whole-sector shift; with ``search``,
+    its candidates (``knobs.candidates_per_region`` per overlap region, at both ends of the covered ``arc``:
+    the periodic wrap, sec. 5.3) are each scored at every whole-sector rotation (eq. 14 minimised over phi
+    for each candidate). A candidate's domain must overlap the current one by ``knobs.overlap_range``
+    (fraction of the exemplar's domain); where none does, the upper bound is relaxed to
+    ``knobs.fill_overlap`` (thin holes in the outer rings, which no candidate can extend by 15 % of its
+    domain; None: the paper's rule only, docs/decisions.md)."""
+    if search is None:
+        rows = np.arange(len(spectra))
+        match, frac = spectra.scores(d, w)
+    else:
+        rows = np.unique([r for r, _ in search.query(d, *arc, knobs.candidates_per_region)]).astype(int)
+        if rows.size == 0:
+            return None
+        match, frac = spectra.scores(d, w, rows)
+    lo, hi = knobs.overlap_range
+    allowed = (frac >= lo) & np.isfinite(match.distance)
+    if exclude is not None:
+        allowed[rows == exclude] = False
+    fill = knobs.fill_overlap
+    for bound in (hi, fill) if fill and fill > hi else (hi,):
+        cost = np.where(allowed & (frac <= bound), match.distance, np.inf)
+        if cost.size and np.isfinite(cost.min()):
+            i, shift = divmod(int(np.argmin(cost)), spectra.grid.n_phi)
+            return int(rows[i]), int(shift), bound
+    return None
+
+
+def aligned_match(choice: tuple[int, int, float], exemplars_d: np.ndarray, exemplars_w: np.ndarray,
+                  d: np.ndarray, w: np.ndarray, grid: DirectionGrid,
+                  knobs: Knobs) -> tuple[int, float, float, Match, float]:
+    """The chosen exemplar's (row, bound, shift s (sectors), eq. 15 Match, overlap fraction) against <d, w>:
+    its whole shift refined below a sector (:func:`_refine`, eq. 14) unless ``knobs.refine`` is off."""
+    row, shift, bound = choice
+    ed, ew = np.asarray(exemplars_d[row], float), np.asarray(exemplars_w[row], float)
+    if knobs.refine:
+        return (row, bound) + _refine(ed, ew, shift, d, w, grid, knobs.overlap_range[0], bound)
+    dc, wc = rotate_tuple(ed, ew, grid, float(shift))
+    m = distance(d, w, dc, wc, grid)
+    return row, bound, float(shift), m, float(m.overlap / max(np.sum((wc > SUPPORT) * grid.solid_angles), TINY))
+
+
+def extend_arc(arc: tuple[float, float], s: float, n_phi: int) -> tuple[float, float]:
+    """The covered arc's (upper, lower) ends after a merge with shift ``s``: the merged piece's domain sits
+    at position -s, and it extends the nearer end (sec. 5.3's search looks past both)."""
+    upper, lower = arc
+    position = (-s) % n_phi
+    up, down = (position - upper) % n_phi, (lower - position) % n_phi
+    return (upper + up, lower) if up <= down else (upper, lower - down)
+
+
+def fill_holes(d: np.ndarray, w: np.ndarray, cosine: np.ndarray | None, target: np.ndarray, grid: DirectionGrid,
+           extend_rings: bool) -> tuple[np.ndarray, np.ndarray | None]:
+    """The completed NDF and Fresnel cosine: holes filled by push-pull (weights W), non-negative and finite;
+    the rings beyond the reach of rotation (``target``) by :func:`extend_beyond_reach` with ``extend_rings``,
+    else :func:`hold_beyond_reach` (the last ring held; the cosine always)."""
+    ndf = push_pull(w * d, w)
+    ndf = np.where(np.isfinite(ndf), np.maximum(ndf, 0.0), 0.0)
+    ndf = extend_beyond_reach(ndf, target, grid) if extend_rings else hold_beyond_reach(ndf, target)
     if cosine is not None:
         cosine = hold_beyond_reach(np.clip(np.nan_to_num(push_pull(w * cosine, w), nan=0.0), 0.0, 1.0), target)
-    return Completion(ndf=filled, confidence=w, coverage=covered, iterations=iterations, stalled=stalled,
-                      merges=merges, fallbacks=fallbacks, fresnel_cosine=cosine)
+    return ndf, cosine

@@ -22,7 +22,10 @@ rule cluster:
         metrics="results/{sample}/cluster/metrics.json",
     params:
         seed=config["seed"],
-        partial_ndf=config["partial_ndf"],   # eqs. 11 and 5 for the pooled representative partial NDFs
+        shadowing=config["partial_ndf"]["shadowing"],   # eqs. 11 and 5 for the pooled representative partial NDFs
+        grazing_deg=config["partial_ndf"]["grazing_deg"],
+        tolerance=config["partial_ndf"]["tolerance"],
+        max_iterations=config["partial_ndf"]["max_iterations"],
         **config["cluster"],
     log:
         "results/{sample}/logs/cluster.log",

@@ -5,12 +5,16 @@ NDF's scale), the eq. 18 neighbours and weights of ``cluster``, kd of
 ``separate``, the per-point specular samples (``separate/specular.npy``,
 ``valid.npy``) whose grazing part partial NDF fitting excluded, the specular
 colour of ``resample`` and the rectified geometry. Output: the folder
-described in :mod:`facetsynth.svbrdf` and ``params/metrics.json``.
+described in :mod:`facetsynth.svbrdf` and ``params/metrics.json``: the eq. 19
+fit's figures per material and, for a virtual capture, eta, ks and the NDF
+spread against the truth (:func:`truth_scores`, apart from the fit, on the
+written model).
 """
 
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +30,7 @@ from ..microfacet import fresnel, half_vector
 from ..scene import MaterialMaps, Scene
 from ..svbrdf import SVBRDF
 from ..synthesis import SUPPORT
-from .common import RectifiedCapture, tiles
+from .common import RectifiedCapture, RuleFiles, StageSettings, tiles
 
 log = logging.getLogger(__name__)
 
@@ -263,16 +267,199 @@ def ndf_spread(model: SVBRDF, truth: MaterialMaps, names: list[str], visible: np
     return spread, skipped
 
 
-def run(geometry: str | Path, kd_path: str | Path, specular: str | Path, valid: str | Path, colour: str | Path,
-        representatives: str | Path, neighbours: str | Path, weights: str | Path, ndf: str | Path,
-        fresnel_cosine: str | Path, synthesis_confidence: str | Path, grid_path: str | Path,
-        svbrdf_out: str | Path, metrics_out: str | Path, grazing_deg: float = 80.0,
-        eta_min: float = fit.ETA_BOUNDS[0], eta_max: float = fit.ETA_BOUNDS[1], eta_default: float = fit.ETA_DEFAULT,
-        min_samples: int = 8,
-        max_std: float = 0.15, min_ndf_fraction: float = 0.05, max_split_difference: float = 0.1,
-        material_tolerance: float = 0.25, max_eta_interval: float = 0.2,
-        rotation: str | Path | None = None, threads: int = 1) -> None:
-    """Fit the remaining parameters and write the SVBRDF folder ``svbrdf_out`` and the metrics.
+@dataclass(frozen=True)
+class Inputs(RuleFiles):
+    """Rule ``params``'s inputs: separate's geometry, kd and samples, resample's specular colour, cluster's
+    representatives and eq. 18 neighbours and weights (and each point's NDF turn), synthesize's completed
+    NDFs, the Fresnel cosine they carry, their confidence and their grid."""
+    geometry: Path
+    kd: Path
+    specular: Path
+    valid: Path
+    colour: Path
+    representatives: Path
+    neighbours: Path
+    weights: Path
+    ndf: Path
+    fresnel_cosine: Path
+    synthesis_confidence: Path
+    grid: Path
+    rotation: Path | None = None      # cluster's turn of each point's NDF; None: none
+
+
+@dataclass(frozen=True)
+class Outputs(RuleFiles):
+    """Rule ``params``'s outputs: the pipeline's SVBRDF folder (refine's start) and the fit's figures."""
+    svbrdf: Path
+    metrics: Path
+
+
+@dataclass(frozen=True)
+class Settings(StageSettings):
+    """The stage's knobs: config ``params`` and ``partial_ndf.grazing_deg`` (workflow/schemas/config.schema.yaml)."""
+    eta_min: float = fit.ETA_BOUNDS[0]     # eta is bounded to [eta_min, eta_max] in eq. 19's LM fit
+    eta_max: float = fit.ETA_BOUNDS[1]
+    eta_default: float = fit.ETA_DEFAULT   # kept where the grazing samples do not constrain eta
+    material_tolerance: float = 0.25       # representatives' kd within it: one material, one eta
+    min_samples: int = 8                   # grazing samples a material needs for an eta fit
+    max_std: float = 0.15                  # a fit with a larger standard error of eta counts as unconstrained
+    min_ndf_fraction: float = 0.05         # grazing samples used: half vector in the lobe (D >= this x the peak)
+    max_split_difference: float = 0.1      # eta of the even and the odd points must agree within it
+    max_eta_interval: float = 0.2          # eta identifiable: its 95 % interval narrower than this
+    grazing_deg: float = 80.0              # config partial_ndf.grazing_deg: lights beyond it are eq. 20's samples
+
+    @property
+    def bounds(self) -> tuple[float, float]:
+        return self.eta_min, self.eta_max
+
+
+@dataclass(frozen=True)
+class Tables:
+    """The stage's inputs read and checked against the rectified grid (P points) and the representatives
+    (R): the completed NDFs (R, T, F) in the partial NDF's scale, the Fresnel cosine they carry (R, T, F),
+    where synthesis measured or synthesized them (``covered``, (R, T, F) bool), eq. 18's neighbours and
+    weights (P, K), kd and the specular colour (P, 3), the samples (memory-mapped) and each point's turn."""
+    grid: DirectionGrid
+    representatives: np.ndarray
+    ndf: np.ndarray
+    cosine: np.ndarray
+    covered: np.ndarray
+    neighbours: np.ndarray
+    weights: np.ndarray
+    kd: np.ndarray
+    colour: np.ndarray
+    specular: np.ndarray
+    valid: np.ndarray
+    rotation: np.ndarray | None
+
+
+def load(inputs: Inputs, capture: RectifiedCapture) -> Tables:
+    """The stage's inputs (:class:`Tables`); an InputError names a file whose shape does not fit."""
+    n = capture.n_points
+    grid = DirectionGrid.from_dict(read_json(inputs.grid))
+    reps = np.asarray(_load(inputs.representatives))
+    table = np.asarray(_load(inputs.ndf, len(reps), "the completed NDF table"), float)
+    if table.shape[1:] != grid.shape:
+        raise InputError(inputs.ndf, f"NDF table {table.shape[1:]} does not match its grid {grid.shape}")
+    cosine = np.asarray(_load(inputs.fresnel_cosine, len(reps), "the Fresnel cosine table"), float)
+    if cosine.shape != table.shape:
+        raise InputError(inputs.fresnel_cosine, f"shape {cosine.shape} does not match the NDF table {table.shape}")
+    covered = np.asarray(_load(inputs.synthesis_confidence, len(reps), "the synthesis confidence"), float) > SUPPORT
+    channels, _ = read_exr(inputs.kd)
+    return Tables(grid=grid, representatives=reps, ndf=table, cosine=cosine, covered=covered,
+                  neighbours=np.asarray(_load(inputs.neighbours, n, "neighbours")),
+                  weights=np.asarray(_load(inputs.weights, n, "weights"), float),
+                  kd=channels["RGB"].reshape(n, 3).astype(float),
+                  colour=np.asarray(_load(inputs.colour, n, "specular colour"), float),
+                  specular=_load(inputs.specular, n, "specular samples"),
+                  valid=_load(inputs.valid, n, "sample validity"),
+                  rotation=None if inputs.rotation is None else np.asarray(_load(inputs.rotation, n, "rotation"),
+                                                                           float))
+
+
+def fit_model(t: Tables, capture: RectifiedCapture, settings: Settings, threads: int = 1) -> tuple[SVBRDF, dict]:
+    """ks, the normalised NDFs and A(k) (sec. 5.4, eq. 5) of the NDFs as synthesis left them; F_m of eq. 20
+    on their grazing samples (:func:`grazing_fresnel`); eta per material by eq. 19 (:func:`fit_eta`); then
+    the model made anew from the NDFs divided by the Fresnel factor they carry (:func:`fresnel_free`).
+    Returns the model (eta, its fitted flag and interval per point, ``info``) and the fit's figures."""
+    carrying, ks_pt, ks_rep = build_model(t.ndf, t.grid, t.neighbours, t.weights, t.kd, t.colour, capture,
+                                          t.representatives, t.rotation)
+    log.info("%d representatives, ks median %.4g; %d points", len(t.representatives), float(np.median(ks_rep)),
+             capture.n_points)
+    samples = grazing_fresnel(carrying, ks_pt, capture, t.specular, t.valid, settings.grazing_deg,
+                              settings.min_ndf_fraction, t.cosine, t.covered, threads)
+    log.info("%d grazing samples (lights beyond %.0f deg) in the lobes", samples["f_m"].size, settings.grazing_deg)
+    material = material_groups(t.kd[t.representatives.astype(np.intp)], settings.material_tolerance)
+    log.info("%d materials by kd (tolerance %.2f)", material.max() + 1, settings.material_tolerance)
+    eta, fitted, records, eta_rep, interval_rep = fit_eta(carrying, t.weights, samples, material, settings.bounds,
+                                                          settings.eta_default, settings.min_samples,
+                                                          settings.max_std, settings.max_split_difference,
+                                                          settings.max_eta_interval)
+    model = fresnel_free(t, capture, eta_rep)
+    model.eta, model.eta_fitted = eta, fitted & capture.visible
+    owner = t.neighbours[np.arange(capture.n_points), np.argmax(t.weights, axis=1)]   # a point's interval: its
+    model.eta_lo, model.eta_hi = interval_rep[owner, 0], interval_rep[owner, 1]      # material's (as eta_fitted)
+    model.info = eta_info(model, material, records, capture, settings)
+    return model, fit_metrics(model, samples, records, capture, settings)
+
+
+def fresnel_free(t: Tables, capture: RectifiedCapture, eta_rep: np.ndarray) -> SVBRDF:
+    """The model of the NDFs without the Fresnel factor they carry, D = D_c / F(cosine, eta) (eqs. 3, 11), with
+    each representative's eta: its ks, normalised NDFs and A(k) free of Fresnel (:func:`build_model`)."""
+    free = t.ndf / np.maximum(fresnel(t.cosine, eta_rep[:, None, None]), 1e-6)
+    model, _, _ = build_model(free, t.grid, t.neighbours, t.weights, t.kd, t.colour, capture, t.representatives,
+                              t.rotation)
+    return model
+
+
+def eta_info(model: SVBRDF, material: np.ndarray, records: list[dict], capture: RectifiedCapture,
+             settings: Settings) -> dict:
+    """The model's ``info`` (model.json): how eta was fitted (eq. 19), its intervals, and what ks is."""
+    return {"eta": {"bounds": list(settings.bounds), "default": settings.eta_default, "materials": material.tolist(),
+                    "fitted_fraction": float(model.eta_fitted[capture.visible].mean()),
+                    "grazing_deg": settings.grazing_deg,
+                    "intervals": {"method": INTERVAL_METHOD, "max_width": settings.max_eta_interval,
+                                  "per_material": [{"material": r["material"], "eta": r["eta"],
+                                                    "interval": r["eta_interval"],
+                                                    "identifiable": r["eta_identifiable"]}
+                                                   for r in records],
+                                  "maps": "eta.exr channels eta_lo, eta_hi: the interval of the "
+                                          "material of the point's largest eq. 18 weight"}},
+            "ks": "ks = integral (n.h) D (sec. 5.4) x specular colour, D free of the Fresnel factor"}
+
+
+def fit_metrics(model: SVBRDF, samples: dict[str, np.ndarray], records: list[dict], capture: RectifiedCapture,
+                settings: Settings) -> dict:
+    """The fit's figures of params/metrics.json: eq. 19's samples, materials and their eta fits."""
+    return {"points": capture.n_points, "representatives": model.ndf.shape[0],
+            "grazing_samples": int(samples["f_m"].size), "materials": len(records),
+            "materials_eta_fitted": int(sum(r["constrained"] for r in records)),
+            "representatives_eta_fitted": int(sum(len(r["representatives"]) for r in records if r["constrained"])),
+            "points_eta_fitted_fraction": model.info["eta"]["fitted_fraction"],
+            "eta_default": settings.eta_default, "eta_bounds": list(settings.bounds),
+            "eta_median": float(np.median(model.eta[capture.visible])) if capture.visible.any() else None,
+            "eta_interval_method": INTERVAL_METHOD, "max_eta_interval": settings.max_eta_interval,
+            "materials_eta_identifiable": int(sum(r["eta_identifiable"] for r in records)),
+            "per_material": records[:200]}
+
+
+def truth_scores(model: SVBRDF, capture: RectifiedCapture) -> dict:
+    """eta (absolute error, median over the visible points whose truth is eq. 6, ``MaterialMaps.analytic``:
+    a measured or conductor truth's eta and ks are placeholders; and over those whose eta was fitted) and ks
+    (median relative error, truth > 0) of the fitted model against a virtual capture's truth, and its NDF
+    spread per homogeneous region (:func:`spread_scores`); {} for a real capture."""
+    truth = capture.truth()
+    if truth is None:
+        return {}
+    on = capture.visible & (truth.region >= 0)
+    analytic = getattr(truth, "analytic", None)
+    if analytic is not None:
+        on &= np.asarray(analytic, bool).reshape(on.shape)
+    out = {}
+    err = np.abs(model.eta - truth.eta)
+    out["eta_abs_error_median"] = float(np.median(err[on])) if on.any() else None
+    sel = on & model.eta_fitted
+    out["eta_abs_error_median_fitted"] = float(np.median(err[sel])) if sel.any() else None
+    out["eta_within_0.1_fraction_fitted"] = float((err[sel] <= 0.1).mean()) if sel.any() else None
+    kt = truth.ks.mean(axis=1)
+    sel = on & (kt > 0)
+    out["ks_median_rel_error"] = float(np.median(np.abs(model.ks.mean(axis=1)[sel] - kt[sel]) / kt[sel])) \
+        if sel.any() else None
+    log.info("eta |error| median %s (fitted points: %s), ks median rel error %s", out["eta_abs_error_median"],
+             out["eta_abs_error_median_fitted"], out["ks_median_rel_error"])
+    return {**out, **spread_scores(model, capture, truth)}
+
+
+def write(model: SVBRDF, inputs: Inputs, outputs: Outputs) -> None:
+    """The SVBRDF folder (:mod:`facetsynth.svbrdf`), whole or not at all."""
+    with atomic_dir(outputs.svbrdf) as staging:
+        model.save(staging, provenance={"ndf": str(inputs.ndf), "neighbours": str(inputs.neighbours),
+                                        "geometry": str(inputs.geometry)})
+
+
+def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threads: int = 1) -> None:
+    """Load, fit, write: the pipeline's SVBRDF folder and params/metrics.json (then scored against the truth
+    of a virtual capture, :func:`truth_scores`, apart from the fit).
 
     Eq. 11 assumes F = 1, so the synthesized NDFs carry a Fresnel factor whose
     cosine synthesis carried along per cell (``fresnel_cosine``); eq. 19
@@ -280,85 +467,11 @@ def run(geometry: str | Path, kd_path: str | Path, specular: str | Path, valid: 
     by F(cosine, eta) once eta is known, so that the model's D and ks are free
     of Fresnel and eq. 6 applies F(|i . h|, eta) at any view.
     """
-    capture = RectifiedCapture.load(geometry)
-    n = capture.n_points
-    grid = DirectionGrid.from_dict(read_json(grid_path))
-    reps = np.asarray(_load(representatives))
-    table = np.asarray(_load(ndf, len(reps), "the completed NDF table"), float)
-    if table.shape[1:] != grid.shape:
-        raise InputError(ndf, f"NDF table {table.shape[1:]} does not match its grid {grid.shape}")
-    cosine = np.asarray(_load(fresnel_cosine, len(reps), "the Fresnel cosine table"), float)
-    if cosine.shape != table.shape:
-        raise InputError(fresnel_cosine, f"shape {cosine.shape} does not match the NDF table {table.shape}")
-    nb = np.asarray(_load(neighbours, n, "neighbours"))
-    w18 = np.asarray(_load(weights, n, "weights"), float)
-    channels, _ = read_exr(kd_path)
-    kd = channels["RGB"].reshape(n, 3).astype(float)
-    col = np.asarray(_load(colour, n, "specular colour"), float)
-    spec, ok = _load(specular, n, "specular samples"), _load(valid, n, "sample validity")
-
-    turn = None if rotation is None else np.asarray(_load(rotation, n, "rotation"), float)
-    carrying, ks_pt, ks_rep = build_model(table, grid, nb, w18, kd, col, capture, reps, turn)
-    log.info("%d representatives, ks median %.4g; %d points", len(reps), float(np.median(ks_rep)), n)
-    covered = np.asarray(_load(synthesis_confidence, len(reps), "the synthesis confidence"), float) > SUPPORT
-    samples = grazing_fresnel(carrying, ks_pt, capture, spec, ok, grazing_deg, min_ndf_fraction, cosine, covered,
-                              threads)
-    log.info("%d grazing samples (lights beyond %.0f deg) in the lobes", samples["f_m"].size, grazing_deg)
-    material = material_groups(kd[reps.astype(np.intp)], material_tolerance)
-    log.info("%d materials by kd (tolerance %.2f)", material.max() + 1, material_tolerance)
-    eta, fitted, records, eta_rep, interval_rep = fit_eta(carrying, w18, samples, material, (eta_min, eta_max),
-                                                          eta_default, min_samples, max_std, max_split_difference,
-                                                          max_eta_interval)
-    # the NDFs without the Fresnel factor they carry: D = D_c / F(cosine, eta) (eqs. 3, 11)
-    free = table / np.maximum(fresnel(cosine, eta_rep[:, None, None]), 1e-6)
-    model, _, _ = build_model(free, grid, nb, w18, kd, col, capture, reps, turn)
-    model.eta, model.eta_fitted = eta, fitted & capture.visible
-    owner = nb[np.arange(n), np.argmax(w18, axis=1)]       # a point's interval: its material's (as eta_fitted)
-    model.eta_lo, model.eta_hi = interval_rep[owner, 0], interval_rep[owner, 1]
-    model.info = {"eta": {"bounds": [eta_min, eta_max], "default": eta_default, "materials": material.tolist(),
-                          "fitted_fraction": float(model.eta_fitted[capture.visible].mean()),
-                          "grazing_deg": grazing_deg,
-                          "intervals": {"method": INTERVAL_METHOD, "max_width": max_eta_interval,
-                                        "per_material": [{"material": r["material"], "eta": r["eta"],
-                                                          "interval": r["eta_interval"],
-                                                          "identifiable": r["eta_identifiable"]}
-                                                         for r in records],
-                                        "maps": "eta.exr channels eta_lo, eta_hi: the interval of the "
-                                                "material of the point's largest eq. 18 weight"}},
-                  "ks": "ks = integral (n.h) D (sec. 5.4) x specular colour, D free of the Fresnel factor"}
-    with atomic_dir(svbrdf_out) as staging:       # the folder appears whole or not at all
-        model.save(staging, provenance={"ndf": str(ndf), "neighbours": str(neighbours), "geometry": str(geometry)})
-
-    n_fit = int(sum(r["constrained"] for r in records))
-    ok_rep_count = sum(len(r["representatives"]) for r in records if r["constrained"])
-    metrics = {"ground_truth": capture.truth_scene is not None, "points": n, "representatives": len(reps),
-               "grazing_samples": int(samples["f_m"].size), "materials": len(records),
-               "materials_eta_fitted": n_fit, "representatives_eta_fitted": int(ok_rep_count),
-               "points_eta_fitted_fraction": model.info["eta"]["fitted_fraction"],
-               "eta_default": eta_default, "eta_bounds": [eta_min, eta_max],
-               "eta_median": float(np.median(eta[capture.visible])) if capture.visible.any() else None,
-               "eta_interval_method": INTERVAL_METHOD, "max_eta_interval": max_eta_interval,
-               "materials_eta_identifiable": int(sum(r["eta_identifiable"] for r in records)),
-               "per_material": records[:200]}
-    truth = capture.truth()
-    if truth is not None:
-        on = capture.visible & (truth.region >= 0)
-        analytic = getattr(truth, "analytic", None)         # eta, ks of measured / conductor truth: placeholders
-        if analytic is not None:
-            on &= np.asarray(analytic, bool).reshape(on.shape)
-        err = np.abs(eta - truth.eta)
-        metrics["eta_abs_error_median"] = float(np.median(err[on])) if on.any() else None
-        sel = on & model.eta_fitted
-        metrics["eta_abs_error_median_fitted"] = float(np.median(err[sel])) if sel.any() else None
-        metrics["eta_within_0.1_fraction_fitted"] = float((err[sel] <= 0.1).mean()) if sel.any() else None
-        kt = truth.ks.mean(axis=1)
-        sel = on & (kt > 0)
-        metrics["ks_median_rel_error"] = float(np.median(np.abs(model.ks.mean(axis=1)[sel] - kt[sel]) / kt[sel])) \
-            if sel.any() else None
-        log.info("eta |error| median %s (fitted points: %s), ks median rel error %s", metrics["eta_abs_error_median"],
-                 metrics["eta_abs_error_median_fitted"], metrics["ks_median_rel_error"])
-        metrics.update(spread_scores(model, capture, truth))
-    write_json(metrics_out, metrics)
+    capture = RectifiedCapture.load(inputs.geometry)
+    model, metrics = fit_model(load(inputs, capture), capture, settings, threads)
+    write(model, inputs, outputs)
+    write_json(outputs.metrics, {"ground_truth": capture.truth_scene is not None, **metrics,
+                                 **truth_scores(model, capture)})
 
 
 def spread_scores(model: SVBRDF, capture: RectifiedCapture, truth: MaterialMaps) -> dict:

@@ -24,7 +24,7 @@ METRIC_POINTS = 1024  # points on which the accuracy against the truth is measur
 @dataclass(frozen=True)
 class Settings(StageSettings):
     """The stage's knobs: config ``partial_ndf`` (workflow/schemas/config.schema.yaml)."""
-    per_point_view: bool = False          # o(x) per point, or the paper's view at the sample centre
+    per_point_view: bool = True           # o(x) per point, or the paper's view at the sample centre
     shadowing: bool | str = "constrained"  # S of eq. 5: :func:`facetsynth.partial_ndf.shadowing_method`
     grazing_deg: float = 80.0             # light directions steeper than this are excluded
     tolerance: float = 1e-3               # stop when D changes by less than this (relative)

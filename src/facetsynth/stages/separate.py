@@ -72,7 +72,7 @@ class Settings(StageSettings):
     threshold: float = 0.05   # eq. 9: samples darker than threshold x the point's average intensity are left out
     lowest: float = 0.03      # eq. 9 averages this fraction of the qualifying samples, those of lowest channel
                               # mean (0: eq. 9's minimum, per channel)
-    heldout_every: int = 0    # config selfcheck.heldout_every: every k-th frame's samples are invalid, so that no
+    heldout_every: int = 10   # config selfcheck.heldout_every: every k-th frame's samples are invalid, so that no
                               # later stage sees those lights (facetsynth.selfcheck.heldout_lights; 0: none)
     shading_normals: bool | str = "auto"   # a normal per point (photometric stereo): "auto" for directional lights
                                            # (a dome) only (AUTO_NORMALS), True always, False: the plane's +z
