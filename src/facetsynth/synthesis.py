@@ -61,16 +61,23 @@ class Match:
     relative: np.ndarray     # sqrt(distance / mean of (D1/s1)^2 and (D2/s2)^2 over Omega_cap): 0 .. sqrt(2)
 
 
-def _finish(a11, a12, a22, s1, s2, den, ref1, ref2, overlap) -> Match:
-    """Assemble eq. 15 from its integrals; an empty overlap or a zero scale gives an infinite distance."""
+def _assemble(num, ref, s1, s2, den, overlap) -> Match:
+    """Eq. 15 from its parts: ``num`` = int_cap sqrt(W1 W2) |D1/s1 - D2/s2|^2, ``ref`` = the same of the mean
+    of (D1/s1)^2 and (D2/s2)^2, the scales, ``den`` = int_cap sqrt(W1 W2) and the overlap's solid angle. An
+    empty overlap or a zero scale gives an infinite distance."""
     ok = (den > TINY) & (s1 > TINY) & (s2 > TINY) & (overlap > 0)
-    s1s, s2s, dens = (np.where(ok, x, 1.0) for x in (s1, s2, den))
-    num = a11 / s1s**2 - 2.0 * a12 / (s1s * s2s) + a22 / s2s**2
-    dist = np.where(ok, np.maximum(num, 0.0) / dens, np.inf)
-    ref = 0.5 * (ref1 / s1s**2 + ref2 / s2s**2)
-    rel = np.where(ok & (ref > 0), np.sqrt(np.maximum(num, 0.0) / np.where(ref > 0, ref, 1.0)), np.inf)
+    num = np.maximum(num, 0.0)
+    dist = np.where(ok, num / np.where(ok, den, 1.0), np.inf)
+    rel = np.where(ok & (ref > 0), np.sqrt(num / np.where(ref > 0, ref, 1.0)), np.inf)
     return Match(distance=dist, s1=np.where(ok, s1, 0.0), s2=np.where(ok, s2, 0.0), overlap=overlap,
                  weight=np.where(ok, den, 0.0), relative=rel)
+
+
+def _finish(a11, a12, a22, s1, s2, den, ref1, ref2, overlap) -> Match:
+    """Eq. 15 from the integrals of D1^2, D1 D2 and D2^2 weighted by sqrt(W1 W2) (:func:`_assemble`)."""
+    s1s, s2s = np.where(s1 > TINY, s1, 1.0), np.where(s2 > TINY, s2, 1.0)
+    num = a11 / s1s**2 - 2.0 * a12 / (s1s * s2s) + a22 / s2s**2
+    return _assemble(num, 0.5 * (ref1 / s1s**2 + ref2 / s2s**2), s1, s2, den, overlap)
 
 
 def distance(d1: np.ndarray, w1: np.ndarray, d2: np.ndarray, w2: np.ndarray, grid: DirectionGrid) -> Match:
@@ -91,11 +98,7 @@ def distance(d1: np.ndarray, w1: np.ndarray, d2: np.ndarray, w2: np.ndarray, gri
     e1, e2 = d1 / s1s[..., None, None], d2 / s2s[..., None, None]
     num = np.sum(a * (e1 - e2) ** 2, axis=(-2, -1))
     ref = 0.5 * np.sum(a * (e1**2 + e2**2), axis=(-2, -1))
-    ok = (den > TINY) & (s1 > TINY) & (s2 > TINY)
-    dist = np.where(ok, num / np.where(ok, den, 1.0), np.inf)
-    rel = np.where(ok & (ref > 0), np.sqrt(num / np.where(ref > 0, ref, 1.0)), np.inf)
-    return Match(distance=dist, s1=np.where(ok, s1, 0.0), s2=np.where(ok, s2, 0.0), overlap=overlap,
-                 weight=np.where(ok, den, 0.0), relative=rel)
+    return _assemble(num, ref, s1, s2, den, overlap)
 
 
 def pairwise_distance(d1: np.ndarray, w1: np.ndarray, d2: np.ndarray, w2: np.ndarray,
