@@ -27,19 +27,6 @@ include: "workflow/rules/export.smk"
 include: "workflow/rules/report.smk"
 
 
-def final_outputs(sample):
-    """What a user takes away: the fitted SVBRDF with its stencil models and self-check, and for a sample whose
-    held-out views the virtual rig can render (a virtual one, or the rig with the virtual camera)
-    the held-out validation."""
-    outputs = [f"results/{sample}/svbrdf", f"results/{sample}/stencil_fit/metrics.json",
-               f"results/{sample}/selfcheck/metrics.json"]   # every sample: the fit against its own frames
-    if rendered_truth(sample) is not None:
-        outputs.append(f"results/{sample}/validate/metrics.json")
-    outputs.append(f"results/{sample}/export/metrics.json")   # the portable glTF material and its loss
-    outputs += report_figures(sample)   # the figures of `snakemake --report` (workflow/rules/report.smk)
-    return outputs
-
-
 rule all:
     input:
         [path for sample in MODEL_SAMPLES for path in final_outputs(sample)],

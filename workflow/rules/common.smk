@@ -3,11 +3,14 @@
 
 import csv
 import json
+from dataclasses import fields
 from pathlib import Path
 
 import yaml
 from snakemake.exceptions import WorkflowError
 from snakemake.utils import validate
+
+from facetsynth.virtual_rig import VirtualRig
 
 
 def scalars(value):
@@ -130,7 +133,7 @@ def rendered_truth(sample):
 
 
 def source_files(row):
-    """The files a sample's capture is made from, beyond its sheet path, as inputs of rule capture: editing
+    """The files a sample's capture is made from, beyond its sheet path, as inputs of the capture rule; editing
     one re-runs the chain from capture (Snakemake compares modification times). An import: its manifest and
     every exposure file the manifest lists; a virtual scene: the measured BRDF files its regions name. A
     manifest or scene that cannot be read yields what could be listed: the capture job then names the problem."""
@@ -167,3 +170,56 @@ def rig_calibration(row):
         return str(yaml.safe_load(Path(row["path"]).read_text())["calibration"])
     except (OSError, yaml.YAMLError, KeyError, TypeError):
         return row["path"]
+
+
+def final_outputs(sample):
+    """What a user takes away: the fitted SVBRDF with its stencil models and self-check, and for a sample whose
+    held-out views the virtual rig can render (a virtual one, or the rig with the virtual camera)
+    the held-out validation."""
+    outputs = [f"results/{sample}/svbrdf", f"results/{sample}/stencil_fit/metrics.json",
+               f"results/{sample}/selfcheck/metrics.json"]   # every sample: the fit against its own frames
+    if rendered_truth(sample) is not None:
+        outputs.append(f"results/{sample}/validate/metrics.json")
+    outputs.append(f"results/{sample}/export/metrics.json")   # the portable glTF material and its loss
+    outputs += report_figures(sample)   # the figures of `snakemake --report` (workflow/rules/report.smk)
+    return outputs
+
+
+
+def report_figures(sample):
+    """The report figures of ``sample`` (targets of the default run); the benchmark plots with the first
+    sample's."""
+    out = [f"results/{sample}/report/{name}.png"
+           for name in ("capture", "relief", "kd", "ks", "eta", "ndf", "clusters")]
+    out.append(f"results/{sample}/report/stencil")
+    if rendered_truth(sample) is not None:
+        out += [f"results/{sample}/report/heldout_{view}.png" for view in HELDOUT_VIEWS]
+    if sample == MODEL_SAMPLES[0]:
+        out += [f"results/report/bench/{name}.png" for name in BENCH_FIGURES]
+    return out
+
+
+
+def rotation_inputs(wildcards):
+    """The geometry and partial NDF tables of the sample's further rotations (sec. 4)."""
+    rotations = rotations_of(wildcards.sample)
+    return {"rotation_geometry": [f"results/{r}/separate/geometry.json" for r in rotations],
+            "rotation_ndf": [f"results/{r}/partial_ndf/ndf" for r in rotations]}
+
+
+
+def calibration_params(settings):
+    """A settings dataclass's fields from config section 'calibration', its defaults for keys left out."""
+    return {f.name: (config.get("calibration") or {}).get(f.name, f.default) for f in fields(settings)}
+
+
+
+def calibration_rig(wildcards):
+    """The virtual rig description the targets are rendered from; none for a real rig (its targets are photos:
+    the job then says where to put them)."""
+    path = f"rig/descriptions/{wildcards.rig}.yaml"
+    try:
+        VirtualRig.load(path)
+    except Exception:
+        return []
+    return [path]

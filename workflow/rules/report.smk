@@ -8,19 +8,6 @@ REPORT_PARAMS = {"mosaic_frames": 12, "heldout_frames": 2,
 BENCH_FIGURES = [name for name in ("tradeoff", "scale") if Path(f"docs/bench/{name}.png").is_file()]
 
 
-def report_figures(sample):
-    """The report figures of ``sample`` (targets of the default run); the benchmark plots with the first
-    sample's."""
-    out = [f"results/{sample}/report/{name}.png"
-           for name in ("capture", "relief", "kd", "ks", "eta", "ndf", "clusters")]
-    out.append(f"results/{sample}/report/stencil")
-    if rendered_truth(sample) is not None:
-        out += [f"results/{sample}/report/heldout_{view}.png" for view in HELDOUT_VIEWS]
-    if sample == MODEL_SAMPLES[0]:
-        out += [f"results/report/bench/{name}.png" for name in BENCH_FIGURES]
-    return out
-
-
 rule report_capture:
     input:
         manifest="results/{sample}/hdr/manifest.json",

@@ -38,13 +38,6 @@ rule cluster:
         "../scripts/cluster.py"
 
 
-def rotation_inputs(wildcards):
-    """The geometry and partial NDF tables of the sample's further rotations (sec. 4)."""
-    rotations = rotations_of(wildcards.sample)
-    return {"rotation_geometry": [f"results/{r}/separate/geometry.json" for r in rotations],
-            "rotation_ndf": [f"results/{r}/partial_ndf/ndf" for r in rotations]}
-
-
 rule synthesize:
     input:
         unpack(rotation_inputs),
