@@ -18,8 +18,9 @@ import yaml
 ROOT = Path(__file__).resolve().parents[1]
 
 # stage module -> its config section
-STAGES = {"separate": "separate", "resample": "resample", "partial_ndf": "partial_ndf", "cluster": "cluster",
-          "synthesize": "synthesize", "params": "params", "refine": "refine", "selfcheck": "selfcheck"}
+STAGES = {"hdr": "hdr", "rectify": "rectify", "separate": "separate", "resample": "resample",
+          "partial_ndf": "partial_ndf", "cluster": "cluster", "synthesize": "synthesize", "params": "params",
+          "refine": "refine", "selfcheck": "selfcheck"}
 # keys a rule takes from another section (or the top level), under that section's name for them
 ELSEWHERE = {"seed": (), "material_tolerance": ("params",), "grazing_deg": ("partial_ndf",),
              "heldout_every": ("selfcheck",), "shadowing": ("partial_ndf",), "tolerance": ("partial_ndf",),

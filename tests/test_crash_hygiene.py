@@ -12,6 +12,7 @@ with negative values written into two exposures (:data:`NEGATIVES`); rectified t
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import signal
@@ -49,7 +50,9 @@ def kill_on_call(*args, **kwargs):
 setattr(owner, spec["name"], kill_on_call)
 stage = importlib.import_module(spec["stage"])
 vars(stage).update(spec["globals"])
-getattr(stage, spec["function"])(**spec["kwargs"])
+kwargs = {k: getattr(stage, v["class"])(**{f: Path(p) for f, p in v["files"].items()}) if isinstance(v, dict) else v
+          for k, v in spec["kwargs"].items()}     # a stage's Inputs, Outputs: rebuilt from their paths
+getattr(stage, spec["function"])(**kwargs)
 """
 
 
@@ -57,12 +60,22 @@ def run_killed(stage: str, function: str, kwargs: dict, root: Path, owner: str, 
                left: list[str], truncate: bool = False, stage_globals: dict | None = None) -> None:
     """Run ``stage.function(**kwargs)`` in a subprocess killed on the ``call``-th call of ``owner.name``;
     check that the kill left the files ``left`` (globs under ``root``): it happened where intended."""
-    spec = {"stage": stage, "function": function, "kwargs": {k: str(v) for k, v in kwargs.items()},
+    spec = {"stage": stage, "function": function, "kwargs": {k: rule_files(v) for k, v in kwargs.items()},
             "owner": owner, "name": name, "call": call, "truncate": truncate, "globals": stage_globals or {}}
     done = subprocess.run([sys.executable, "-c", KILL_ON_CALL, json.dumps(spec)], capture_output=True, text=True)
     assert done.returncode == -signal.SIGKILL, done.stderr[-2000:]
     for pattern in left:
         assert list(root.glob(pattern)), f"the kill left no {pattern}"
+
+
+def rule_files(value) -> str | dict:
+    """A keyword argument of a stage as JSON: a path as text, a stage's ``Inputs`` or ``Outputs`` as its class
+    name and its paths (KILL_ON_CALL rebuilds it)."""
+    if dataclasses.is_dataclass(value):
+        return {"class": type(value).__name__,
+                "files": {f.name: str(getattr(value, f.name)) for f in dataclasses.fields(value)
+                          if getattr(value, f.name) is not None}}
+    return str(value)
 
 
 def temporaries(root: Path) -> list[Path]:
@@ -77,9 +90,10 @@ def assert_same_files(got: Path, expected: Path) -> None:
         assert (got / name).read_bytes() == (expected / name).read_bytes(), name
 
 
-def hdr_paths(root: Path) -> dict:
-    return {"frames_dir": root / "hdr/frames", "manifest_out": root / "hdr/manifest.json",
-            "metrics_out": root / "hdr/metrics.json"}
+def hdr_paths(root: Path):
+    from facetsynth.stages import hdr
+    return hdr.Outputs(frames=root / "hdr/frames", manifest=root / "hdr/manifest.json",
+                       metrics=root / "hdr/metrics.json")
 
 
 def pndf_paths(root: Path) -> dict:
@@ -103,15 +117,16 @@ def work(tmp_path_factory, repo):
         rgb[0, :pixels, :channels] = -0.003          # read noise below a black level
         write_exr(file, {"RGB": rgb}, {"exposure_time": header["exposure_time"]}, precision="float16")
     ref = root / "ref"
-    hdr.run(root / "capture", **hdr_paths(ref))
-    rectify.run(ref / "hdr/manifest.json", ref / "rectify/frames", ref / "rectify/geometry.json",
-                ref / "rectify/metrics.json", resolution=16)
+    hdr.run(hdr.Inputs(capture=root / "capture"), hdr_paths(ref))
+    rectify.run(rectify.Inputs(manifest=ref / "hdr/manifest.json"),
+                rectify.Outputs(frames=ref / "rectify/frames", geometry=ref / "rectify/geometry.json",
+                                metrics=ref / "rectify/metrics.json"), rectify.Settings(resolution=16))
     inputs = {"geometry": ref / "rectify/geometry.json", "slice_path": ref / "resample/slice",
               "grid_path": ref / "resample/grid.json"}
-    separate.run(geometry=inputs["geometry"], kd_out=ref / "separate/kd.exr",
-                 specular_out=ref / "separate/specular.npy",
-                 valid_out=ref / "separate/valid.npy", metrics_out=ref / "separate/metrics.json",
-                 settings=separate.Settings(heldout_every=0))
+    separate.run(separate.Inputs(geometry=inputs["geometry"]),
+                 separate.Outputs(kd=ref / "separate/kd.exr", specular=ref / "separate/specular.npy",
+                                  valid=ref / "separate/valid.npy", metrics=ref / "separate/metrics.json"),
+                 separate.Settings(heldout_every=0))
     resample.run(geometry=inputs["geometry"], specular=ref / "separate/specular.npy", valid=ref / "separate/valid.npy",
                  slice_out=inputs["slice_path"],
                  colour_out=ref / "resample/colour.npy", grid_out=inputs["grid_path"],
@@ -127,7 +142,7 @@ def test_hdr_counts_negative_exposure_values_and_warns(work, tmp_path, caplog):
     count goes to the metrics and a WARNING names it and the first file."""
     from facetsynth.stages import hdr
     with caplog.at_level(logging.WARNING, logger="facetsynth.stages.hdr"):
-        hdr.run(work["root"] / "capture", **hdr_paths(tmp_path))
+        hdr.run(hdr.Inputs(capture=work["root"] / "capture"), hdr_paths(tmp_path))
     metrics = json.loads((tmp_path / "hdr/metrics.json").read_text())
     assert metrics["negative_values"] == NEGATIVE_COUNT
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
@@ -143,7 +158,7 @@ def test_hdr_without_negative_values_reports_zero_and_does_not_warn(tmp_path, re
     capture(repo / "resources/scenes/demo.yaml", VirtualRig.load(repo / "tests/data/rig-tiny.yaml"),
             tmp_path / "capture", seed=2, noise=True)
     with caplog.at_level(logging.WARNING, logger="facetsynth.stages.hdr"):
-        hdr.run(tmp_path / "capture", **hdr_paths(tmp_path))
+        hdr.run(hdr.Inputs(capture=tmp_path / "capture"), hdr_paths(tmp_path))
     assert json.loads((tmp_path / "hdr/metrics.json").read_text())["negative_values"] == 0
     assert not [r for r in caplog.records if r.levelno == logging.WARNING]
 
@@ -168,7 +183,7 @@ HDR_KILLS = {
 def test_hdr_rerun_after_sigkill_is_bitwise_an_uninterrupted_run(work, tmp_path, kill):
     from facetsynth.stages import hdr
     root = work["root"] / tmp_path.name       # beside ref: the manifest's relative paths to the capture match
-    kwargs = {"capture_dir": work["root"] / "capture", **hdr_paths(root)}
+    kwargs = {"inputs": hdr.Inputs(capture=work["root"] / "capture"), "outputs": hdr_paths(root)}
     run_killed("facetsynth.stages.hdr", "run", kwargs, root, **HDR_KILLS[kill])
     hdr.run(**kwargs)
     assert temporaries(root) == []

@@ -38,7 +38,8 @@ def variant(card, folder, frames=None, darken=()):
 
 def run_hdr(folder):
     out = folder.parent / "hdr"
-    hdr.run(folder, out / "frames", out / "manifest.json", out / "metrics.json")
+    hdr.run(hdr.Inputs(capture=folder),
+            hdr.Outputs(frames=out / "frames", manifest=out / "manifest.json", metrics=out / "metrics.json"))
     return json.loads((out / "metrics.json").read_text())
 
 
@@ -90,10 +91,12 @@ def test_a_noisy_matte_sample_is_flagged_diffuse_only(repo, tmp_path):
         root = tmp_path / name
         capture(path, rig, root / "capture", seed=2, noise=True)
         run_hdr(root / "capture")
-        rectify.run(root / "hdr/manifest.json", root / "rectify/frames", root / "rectify/geometry.json",
-                    root / "rectify/metrics.json", resolution=32)
-        separate.run(root / "rectify/geometry.json", root / "kd.exr", root / "specular.npy", root / "valid.npy",
-                     root / "separate.json", separate.Settings(heldout_every=0))
+        rectify.run(rectify.Inputs(manifest=root / "hdr/manifest.json"),
+                    rectify.Outputs(frames=root / "rectify/frames", geometry=root / "rectify/geometry.json",
+                                    metrics=root / "rectify/metrics.json"), rectify.Settings(resolution=32))
+        separate.run(separate.Inputs(geometry=root / "rectify/geometry.json"),
+                     separate.Outputs(kd=root / "kd.exr", specular=root / "specular.npy", valid=root / "valid.npy",
+                                      metrics=root / "separate.json"), separate.Settings(heldout_every=0))
         fractions[name] = json.loads((root / "separate.json").read_text())
     assert fractions["matte"]["specular_signal_fraction"] < 0.01                 # measured 0.002 at 64 x 64
     assert fractions["matte"]["degenerate"].startswith("no specular signal: ")

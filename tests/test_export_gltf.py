@@ -275,8 +275,8 @@ def test_anisotropy_directions_are_oriented_for_linear_filtering():
 def test_stage_without_heldout_truth_writes_the_fit_record(exported, tmp_path):
     from facetsynth.stages import export
     folder, _, _ = exported
-    export.run(svbrdf=folder, gltf_out=tmp_path / "gltf", metrics_out=tmp_path / "metrics.json",
-               settings=export.Settings(iterations=8))
+    export.run(export.Inputs(svbrdf=folder), export.Outputs(gltf=tmp_path / "gltf", metrics=tmp_path / "metrics.json"),
+               export.Settings(iterations=8))
     m = json.loads((tmp_path / "metrics.json").read_text())
     assert m["views"] == {} and m["fit"]["iterations"] == 8 and m["fit_seconds"] > 0
     assert "heldout_loss_rel_l2" not in m

@@ -189,9 +189,10 @@ def run_per_point_stages(root: Path, geometry: Path, n_theta: int = 32,
         for n in names:
             f[f"{stage}/{n}"] = root / stage / n
     f["svbrdf"] = root / "svbrdf"
-    st_separate.run(geometry=geometry, kd_out=f["separate/kd.exr"], specular_out=f["separate/specular.npy"],
-         valid_out=f["separate/valid.npy"], metrics_out=f["separate/metrics.json"],
-         settings=st_separate.Settings(heldout_every=0))
+    st_separate.run(st_separate.Inputs(geometry=geometry),
+                    st_separate.Outputs(kd=f["separate/kd.exr"], specular=f["separate/specular.npy"],
+                                        valid=f["separate/valid.npy"], metrics=f["separate/metrics.json"]),
+                    st_separate.Settings(heldout_every=0))
     st_resample.run(geometry=geometry, specular=f["separate/specular.npy"], valid=f["separate/valid.npy"],
          slice_out=f["resample/slice"],
          colour_out=f["resample/specular_colour.npy"], grid_out=f["resample/grid.json"],
@@ -243,9 +244,12 @@ def extreme_run(tmp_path_factory):
     rig = (REPO / "tests/data/rig-sparse.yaml").read_text().replace("width: 240", "width: 120")
     (root / "rig.yaml").write_text(rig.replace("height_px: 160", "height_px: 80"))   # a quarter of the pixels
     capture(root / "scene.yaml", VirtualRig.load(root / "rig.yaml"), root / "capture", seed=1, noise=False)
-    hdr.run(root / "capture", root / "hdr/frames", root / "hdr/manifest.json", root / "hdr/metrics.json")
-    rectify.run(root / "hdr/manifest.json", root / "rectify/frames", root / "rectify/geometry.json",
-                root / "rectify/metrics.json", resolution=16)
+    hdr.run(hdr.Inputs(capture=root / "capture"),
+            hdr.Outputs(frames=root / "hdr/frames", manifest=root / "hdr/manifest.json",
+                        metrics=root / "hdr/metrics.json"))
+    rectify.run(rectify.Inputs(manifest=root / "hdr/manifest.json"),
+                rectify.Outputs(frames=root / "rectify/frames", geometry=root / "rectify/geometry.json",
+                                metrics=root / "rectify/metrics.json"), rectify.Settings(resolution=16))
     files = run_per_point_stages(root, root / "rectify/geometry.json", n_theta=16)
     files["root"] = root
     return files
@@ -499,8 +503,9 @@ def test_separate_stage_refuses_a_nan_frame_naming_the_pixel(tmp_path):
     geometry = write_rectified(tmp_path / "cap", one_material((0.2,) * 3, (0.5,) * 3), PlaneGrid(0.1, 0.1, 4, 4),
                                rig_lights(3, 3), damage=damage)
     with pytest.raises(InputError, match=r"0003\.exr.*1 pixel\(s\) are NaN or Inf \(first at row 2, col 1\)"):
-        separate.run(geometry, tmp_path / "kd.exr", tmp_path / "s.npy", tmp_path / "v.npy", tmp_path / "m.json",
-                     separate.Settings(heldout_every=0))
+        separate.run(separate.Inputs(geometry=geometry),
+                     separate.Outputs(kd=tmp_path / "kd.exr", specular=tmp_path / "s.npy", valid=tmp_path / "v.npy",
+                                      metrics=tmp_path / "m.json"), separate.Settings(heldout_every=0))
     assert not (tmp_path / "kd.exr").exists() and not (tmp_path / "s.npy").exists()
 
 
@@ -519,8 +524,9 @@ def test_saturated_and_nan_samples_are_invalid_and_kd_comes_from_the_rest(tmp_pa
 
     geometry = write_rectified(tmp_path / "cap", one_material(kd, (0.4,) * 3), PlaneGrid(0.1, 0.1, 3, 3),
                                rig_lights(5, 5), damage=damage)
-    separate.run(geometry, tmp_path / "kd.exr", tmp_path / "s.npy", tmp_path / "v.npy", tmp_path / "m.json",
-                 separate.Settings(heldout_every=0))
+    separate.run(separate.Inputs(geometry=geometry),
+                 separate.Outputs(kd=tmp_path / "kd.exr", specular=tmp_path / "s.npy", valid=tmp_path / "v.npy",
+                                  metrics=tmp_path / "m.json"), separate.Settings(heldout_every=0))
     got = read_exr(tmp_path / "kd.exr")[0]["RGB"].reshape(-1, 3)
     valid = np.load(tmp_path / "v.npy")
     assert valid[4, 1::2].all() and not valid[4, 0::2].any() and valid[[0, 1, 2, 3, 5, 6, 7, 8]].all()

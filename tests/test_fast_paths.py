@@ -114,8 +114,9 @@ def test_separation_in_frame_blocks_equals_one_frame_at_a_time(tmp_path, monkeyp
     for name, block, threads in (("one", 1, 1), ("blocks", 7, 2)):
         monkeypatch.setattr(separate, "FRAME_BLOCK", block)
         out = tmp_path / name
-        separate.run(geometry, out / "kd.exr", out / "spec.npy", out / "valid.npy", out / "m.json",
-                     separate.Settings(heldout_every=0), threads=threads)
+        separate.run(separate.Inputs(geometry=geometry),
+                     separate.Outputs(kd=out / "kd.exr", specular=out / "spec.npy", valid=out / "valid.npy",
+                                      metrics=out / "m.json"), separate.Settings(heldout_every=0), threads=threads)
         outputs[name] = [np.load(out / f) for f in ("spec.npy", "valid.npy")]
     for a, b in zip(outputs["one"], outputs["blocks"]):
         np.testing.assert_array_equal(a, b)
@@ -128,8 +129,9 @@ def test_tiles_on_threads_equal_one_thread(tmp_path):
     from facetsynth.stages import partial_ndf, resample, separate
     geometry = write_rectified(tmp_path / "cap", one_material((0.2, 0.3, 0.4), (0.5,) * 3), PlaneGrid(0.1, 0.1, 32, 32),
                                rig_lights(9, 8))
-    separate.run(geometry, tmp_path / "kd.exr", tmp_path / "spec.npy", tmp_path / "valid.npy", tmp_path / "s.json",
-                 separate.Settings(heldout_every=0))
+    separate.run(separate.Inputs(geometry=geometry),
+                 separate.Outputs(kd=tmp_path / "kd.exr", specular=tmp_path / "spec.npy", valid=tmp_path / "valid.npy",
+                                  metrics=tmp_path / "s.json"), separate.Settings(heldout_every=0))
     runs = []
     for threads in (1, 2, 2, 2):
         out = tmp_path / f"run{len(runs)}"
@@ -174,8 +176,9 @@ def test_the_slice_kept_on_its_support_gives_the_partial_ndfs_of_the_whole_slice
     from facetsynth.stages import partial_ndf, resample, separate
     geometry = write_rectified(tmp_path / "cap", one_material((0.2, 0.3, 0.4), (0.5,) * 3, alpha=(0.15, 0.3)),
                                PlaneGrid(0.1, 0.1, 16, 16), rig_lights(9, 8))
-    separate.run(geometry, tmp_path / "kd.exr", tmp_path / "spec.npy", tmp_path / "valid.npy", tmp_path / "s.json",
-                 separate.Settings(heldout_every=0))
+    separate.run(separate.Inputs(geometry=geometry),
+                 separate.Outputs(kd=tmp_path / "kd.exr", specular=tmp_path / "spec.npy", valid=tmp_path / "valid.npy",
+                                  metrics=tmp_path / "s.json"), separate.Settings(heldout_every=0))
     fitted = []
     for name in ("support", "whole"):
         out = tmp_path / name

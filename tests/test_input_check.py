@@ -137,7 +137,8 @@ def test_the_import_stage_and_predict_refuse_a_manifest_as_check_does(capture, t
     path = mutated(capture, lambda d: d["frames"][0]["light"].update(position=[0, 0, math.nan]))
     line = check_error(capture, capsys)
     with pytest.raises(InputError) as imported:
-        capture_stage.run("import", capture, tmp_path / "out", rig=None, seed=0, noise=False)
+        capture_stage.run(capture_stage.Inputs(path=capture), capture_stage.Outputs(capture=tmp_path / "out"),
+                          capture_stage.Settings(source="import", rig=None, seed=0, noise=False))
     with pytest.raises(InputError) as predicted:
         predict(tmp_path / "no-model", path, tmp_path / "pred", progress=False)
     assert line.endswith(str(imported.value)) and str(imported.value) == str(predicted.value)
@@ -170,7 +171,9 @@ def test_the_merged_hdr_capture_states_saturation_null(capture, tmp_path):
              "exposures": [{"file": "frames/0002_e0.exr", "time": 1.0}]}
     write_exr(capture / third["exposures"][0]["file"], {"RGB": np.full((3, 4, 3), 0.2)})
     mutated(capture, lambda d: d["frames"].append(third))
-    hdr_stage.run(capture, tmp_path / "hdr/frames", tmp_path / "hdr/manifest.json", tmp_path / "hdr/metrics.json")
+    hdr_stage.run(hdr_stage.Inputs(capture=capture),
+                  hdr_stage.Outputs(frames=tmp_path / "hdr/frames", manifest=tmp_path / "hdr/manifest.json",
+                                    metrics=tmp_path / "hdr/metrics.json"))
     assert manifest.load(tmp_path / "hdr/manifest.json")["saturation"] is None
 
 

@@ -186,7 +186,8 @@ def test_hdr_stage_merges_an_8bit_capture_to_the_true_radiance(tmp_path):
     truths = eight_bit_capture(tmp_path / "cap")
     assert exposure_bits(tmp_path / "cap/frames/0000_e0.png") == 8
     out = tmp_path / "hdr"
-    hdr_stage.run(tmp_path / "cap", out / "frames", out / "manifest.json", out / "metrics.json")
+    hdr_stage.run(hdr_stage.Inputs(capture=tmp_path / "cap"), hdr_stage.Outputs(
+        frames=out / "frames", manifest=out / "manifest.json", metrics=out / "metrics.json"))
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["exposure_bits"] == 8
     curve = np.array(metrics["response"]["linear"])
@@ -213,7 +214,8 @@ def test_hdr_stage_refuses_a_capture_mixing_exr_and_8bit(tmp_path):
     (tmp_path / "cap/manifest.json").write_text(json.dumps(data))
     out = tmp_path / "hdr"
     with pytest.raises(InputError, match=r"manifest.json: exposures mix EXR .*x.exr.* and 8-bit images"):
-        hdr_stage.run(tmp_path / "cap", out / "frames", out / "manifest.json", out / "metrics.json")
+        hdr_stage.run(hdr_stage.Inputs(capture=tmp_path / "cap"), hdr_stage.Outputs(
+            frames=out / "frames", manifest=out / "manifest.json", metrics=out / "metrics.json"))
 
 
 def test_hdr_stage_8bit_capture_with_one_exposure_is_a_clear_error(tmp_path):
@@ -224,4 +226,5 @@ def test_hdr_stage_8bit_capture_with_one_exposure_is_a_clear_error(tmp_path):
     (tmp_path / "cap/manifest.json").write_text(json.dumps(data))
     out = tmp_path / "hdr"
     with pytest.raises(InputError, match=r"manifest.json: 1 exposure\(s\) at 1 distinct time"):
-        hdr_stage.run(tmp_path / "cap", out / "frames", out / "manifest.json", out / "metrics.json")
+        hdr_stage.run(hdr_stage.Inputs(capture=tmp_path / "cap"), hdr_stage.Outputs(
+            frames=out / "frames", manifest=out / "manifest.json", metrics=out / "metrics.json"))

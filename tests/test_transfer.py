@@ -149,7 +149,8 @@ def one_shot_capture(folder, transfer, black_level=0.0, ext=".png", times=(TIME,
 
 def run_stage(tmp_path, capture="cap", out="hdr"):
     out = tmp_path / out
-    hdr_stage.run(tmp_path / capture, out / "frames", out / "manifest.json", out / "metrics.json")
+    hdr_stage.run(hdr_stage.Inputs(capture=tmp_path / capture),
+                  hdr_stage.Outputs(frames=out / "frames", manifest=out / "manifest.json", metrics=out / "metrics.json"))
     return out, json.loads((out / "metrics.json").read_text())
 
 

@@ -9,7 +9,7 @@ from facetsynth import manifest
 from facetsynth.grid import DirectionGrid
 from facetsynth.plane import PlaneGrid
 from facetsynth.scene import Scene
-from facetsynth.stages import validate
+from facetsynth.stages import heldout_capture, validate
 from facetsynth.svbrdf import tabulate_truth
 from facetsynth.virtual_rig import VirtualRig
 from facetsynth.ward import WardSVBRDF, fit_points, ward_specular
@@ -52,8 +52,9 @@ def test_validate_scores_heldout_views_and_writes_side_by_side_images(tmp_path, 
     (tmp_path / "scene.yaml").write_text(SCENE)
     views = {"paper": (50.9, -15.3), "theta30": (30.0, 20.0)}
     for name, (theta, phi) in views.items():
-        validate.heldout_capture(tmp_path / "scene.yaml", repo / "tests/data/rig-tiny.yaml",
-                                 tmp_path / "heldout" / name, theta, phi, led_every=2, position_every=2)
+        heldout_capture.run(heldout_capture.Inputs(tmp_path / "scene.yaml", repo / "tests/data/rig-tiny.yaml"),
+                            heldout_capture.Outputs(tmp_path / "heldout" / name),
+                            heldout_capture.Settings(theta, phi, led_every=2, position_every=2))
     plane = PlaneGrid(0.1, 0.1, 64, 64)
     maps = Scene.load(tmp_path / "scene.yaml").parameters(plane.points3d().reshape(-1, 3)[:, :2])
     tabulate_truth(maps, DirectionGrid(32, 128), plane).save(tmp_path / "svbrdf")
@@ -61,9 +62,10 @@ def test_validate_scores_heldout_views_and_writes_side_by_side_images(tmp_path, 
     p = plane.rows * plane.cols
     WardSVBRDF(plane, maps.kd, maps.ks, np.full(p, 0.5), np.full(p, 0.5), np.zeros(p)).save(tmp_path / "ward")
     (tmp_path / "bench.tsv").write_text("s\th:m:s\tmax_rss\n12.5\t0:00:12\t100\n")
-    validate.run(tmp_path / "svbrdf", tmp_path / "ward", {v: tmp_path / "heldout" / v for v in views},
-                 tmp_path / "pred", tmp_path / "metrics.json", tmp_path / "images",
-                 fit_benchmarks=[tmp_path / "bench.tsv", tmp_path / "missing.tsv"], ward_benchmark=tmp_path / "bench.tsv")
+    validate.run(validate.Inputs(tmp_path / "svbrdf", [tmp_path / "heldout" / v for v in views], ward=tmp_path / "ward"),
+                 validate.Outputs(tmp_path / "metrics.json", tmp_path / "images", tmp_path / "pred"),
+                 validate.Settings(views=tuple(views), fit_benchmarks=(tmp_path / "bench.tsv", tmp_path / "missing.tsv"),
+                                   ward_benchmark=tmp_path / "bench.tsv"))
     m = json.loads((tmp_path / "metrics.json").read_text())
     assert set(m["views"]) == set(views)
     for v in m["views"].values():
@@ -230,8 +232,9 @@ def test_diffuse_truth_reproduces_a_matte_heldout_capture(repo, tmp_path, calibr
         "name: matte\nsize: [0.1, 0.1]\nregions:\n  - name: a\n    where: {all: true}\n"
         "    kd: [0.3, 0.2, 0.1]\n    ks: [0.0, 0.0, 0.0]\n    eta: 1.5\n    alpha: [0.2, 0.2]\n"
         "    frame: {angle_deg: 0}\n")
-    validate.heldout_capture(tmp_path / "matte.yaml", tmp_path / "rig.yaml", tmp_path / "held", 40.0, 10.0,
-                             led_every=4, position_every=4)
+    heldout_capture.run(heldout_capture.Inputs(tmp_path / "matte.yaml", tmp_path / "rig.yaml"),
+                        heldout_capture.Outputs(tmp_path / "held"),
+                        heldout_capture.Settings(40.0, 10.0, led_every=4, position_every=4))
     m = manifest.load(tmp_path / "held", check_files=False)
     assert ("calibration" in m["truth"]) == calibration_error
     truth = np.stack([read_rgb(f["truth"]["radiance"]) for f in m["frames"]]).astype(float)

@@ -168,14 +168,18 @@ def test_noisy_capture_stays_within_three_times_the_targets(repo, tmp_path):
     from facetsynth.stages import hdr, rectify
     capture(repo / "resources/scenes/demo.yaml", VirtualRig.load(repo / "tests/data/rig-tiny.yaml"),
             tmp_path / "capture", seed=1, noise=True)
-    hdr.run(tmp_path / "capture", tmp_path / "hdr/frames", tmp_path / "hdr/manifest.json", tmp_path / "hdr/metrics.json")
-    rectify.run(tmp_path / "hdr/manifest.json", tmp_path / "rect/frames", tmp_path / "rect/geometry.json",
-                tmp_path / "rect/metrics.json", resolution=48)
+    hdr.run(hdr.Inputs(capture=tmp_path / "capture"),
+            hdr.Outputs(frames=tmp_path / "hdr/frames", manifest=tmp_path / "hdr/manifest.json",
+                        metrics=tmp_path / "hdr/metrics.json"))
+    rectify.run(rectify.Inputs(manifest=tmp_path / "hdr/manifest.json"),
+                rectify.Outputs(frames=tmp_path / "rect/frames", geometry=tmp_path / "rect/geometry.json",
+                                metrics=tmp_path / "rect/metrics.json"), rectify.Settings(resolution=48))
     assert json.loads((tmp_path / "hdr/metrics.json").read_text())["median_rel_error"] <= 0.03
     assert json.loads((tmp_path / "rect/metrics.json").read_text())["registration_error_px"] <= 1.5
     # resolution auto (issue 14): as many cells as pixels see the sample; the tiny rig's 120 x 80 camera: 84
-    rectify.run(tmp_path / "hdr/manifest.json", tmp_path / "auto/frames", tmp_path / "auto/geometry.json",
-                tmp_path / "auto/metrics.json", resolution="auto")
+    rectify.run(rectify.Inputs(manifest=tmp_path / "hdr/manifest.json"),
+                rectify.Outputs(frames=tmp_path / "auto/frames", geometry=tmp_path / "auto/geometry.json",
+                                metrics=tmp_path / "auto/metrics.json"), rectify.Settings(resolution="auto"))
     auto = json.loads((tmp_path / "auto/metrics.json").read_text())
     assert (auto["cols"], auto["rows"], auto["resolution_rule"]) == (84, 84, "auto")
     assert auto["registration_error_px"] <= 1.5 * 84 / 48           # the same error in metres, finer cells

@@ -19,7 +19,7 @@ rule capture:
     input:
         unpack(capture_inputs),
     output:
-        directory("results/{sample}/capture"),
+        capture=directory("results/{sample}/capture"),
     params:
         source=lambda wc: SAMPLE_SHEET[wc.sample]["source"],
         rig=lambda wc: sample_rig(wc.sample),

@@ -66,6 +66,17 @@ scattergather:
     tiles=SCATTER_TILES,
 
 
+# resample, partial_ndf and baseline_ward: at scatter.tiles 1 one job runs the whole stage; above it, part jobs
+# of whole tiles (`use rule STAGE as STAGE_part`) and the stage's rule joins them (docs/decisions.md, "On a cluster")
+SCATTERED = SCATTER_TILES > 1
+
+
+def scatter_parts(**patterns):
+    """The part files a scattered stage's join reads, by input name (patterns with {{sample}} and {scatteritem});
+    none at scatter.tiles 1, where the stage's rule runs it whole."""
+    return {name: gather.tiles(pattern) for name, pattern in patterns.items()} if SCATTERED else {}
+
+
 def read_samples(path):
     """The sample sheet as {sample: row}, each row validated against the schema."""
     if not Path(path).is_file():

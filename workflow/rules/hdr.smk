@@ -3,7 +3,7 @@
 
 rule hdr:
     input:
-        "results/{sample}/capture",
+        capture="results/{sample}/capture",
     output:
         frames=directory("results/{sample}/hdr/frames"),
         manifest="results/{sample}/hdr/manifest.json",

@@ -33,72 +33,45 @@ RESAMPLE_INPUTS = {
     "specular": "results/{sample}/separate/specular.npy",
     "valid": "results/{sample}/separate/valid.npy",
 }
-RESAMPLE_PARAMS = {"grazing_deg": config["partial_ndf"]["grazing_deg"], **config["resample"]}
 
 
-if SCATTER_TILES == 1:
+rule resample:   # the whole capture; with scatter.tiles > 1 the join of resample_part's jobs (bitwise the same)
+    input:
+        **RESAMPLE_INPUTS,
+        **scatter_parts(slice="results/{{sample}}/resample/parts/{scatteritem}/slice",
+                        records="results/{{sample}}/resample/parts/{scatteritem}/record.npz"),
+    output:
+        slice=directory("results/{sample}/resample/slice"),
+        colour="results/{sample}/resample/specular_colour.npy",
+        grid="results/{sample}/resample/grid.json",
+        metrics="results/{sample}/resample/metrics.json",
+    params:
+        grazing_deg=config["partial_ndf"]["grazing_deg"],
+        **config["resample"],
+    log:
+        "results/{sample}/logs/resample.log",
+    benchmark:
+        "results/{sample}/benchmarks/resample.tsv"
+    threads: 1 if SCATTERED else 2   # tiles of points in parallel; the join copies
+    resources:
+        mem_mb=1000 if SCATTERED else 2000,
+    script:
+        "../scripts/resample.py"
 
-    rule resample:
-        input:
-            **RESAMPLE_INPUTS,
-        output:
-            slice=directory("results/{sample}/resample/slice"),
-            colour="results/{sample}/resample/specular_colour.npy",
-            grid="results/{sample}/resample/grid.json",
-            metrics="results/{sample}/resample/metrics.json",
-        params:
-            **RESAMPLE_PARAMS,
-        log:
-            "results/{sample}/logs/resample.log",
-        benchmark:
-            "results/{sample}/benchmarks/resample.tsv"
-        threads: 2   # tiles of points in parallel
-        resources:
-            mem_mb=2000,
-        script:
-            "../scripts/resample.py"
 
-else:   # scatter.tiles > 1: one job per part of the points (whole tiles), joined bitwise as one run's
-
-    rule resample_part:
-        input:
-            **RESAMPLE_INPUTS,
-        output:
-            slice=temp(directory("results/{sample}/resample/parts/{scatteritem}/slice")),
-            record=temp("results/{sample}/resample/parts/{scatteritem}/record.npz"),
-        params:
-            **RESAMPLE_PARAMS,
-        log:
-            "results/{sample}/logs/resample/{scatteritem}.log",
-        benchmark:
-            "results/{sample}/benchmarks/resample/{scatteritem}.tsv"
-        threads: 1
-        resources:
-            mem_mb=2000,
-        script:
-            "../scripts/resample.py"
-
-    rule resample:
-        input:
-            **RESAMPLE_INPUTS,
-            slice=gather.tiles("results/{{sample}}/resample/parts/{scatteritem}/slice"),
-            records=gather.tiles("results/{{sample}}/resample/parts/{scatteritem}/record.npz"),
-        output:
-            slice=directory("results/{sample}/resample/slice"),
-            colour="results/{sample}/resample/specular_colour.npy",
-            grid="results/{sample}/resample/grid.json",
-            metrics="results/{sample}/resample/metrics.json",
-        params:
-            **RESAMPLE_PARAMS,
-        log:
-            "results/{sample}/logs/resample.log",
-        benchmark:
-            "results/{sample}/benchmarks/resample.tsv"
-        threads: 1
-        resources:
-            mem_mb=1000,
-        script:
-            "../scripts/resample.py"
+use rule resample as resample_part with:   # one part of the points (whole tiles); unused at scatter.tiles 1
+    input:
+        **RESAMPLE_INPUTS,
+    output:
+        slice=temp(directory("results/{sample}/resample/parts/{scatteritem}/slice")),
+        record=temp("results/{sample}/resample/parts/{scatteritem}/record.npz"),
+    log:
+        "results/{sample}/logs/resample/{scatteritem}.log",
+    benchmark:
+        "results/{sample}/benchmarks/resample/{scatteritem}.tsv"
+    threads: 1
+    resources:
+        mem_mb=2000,
 
 
 PARTIAL_NDF_INPUTS = {
@@ -108,63 +81,37 @@ PARTIAL_NDF_INPUTS = {
 }
 
 
-if SCATTER_TILES == 1:
+rule partial_ndf:   # the whole capture; with scatter.tiles > 1 the join of partial_ndf_part's jobs (bitwise the same)
+    input:
+        **PARTIAL_NDF_INPUTS,
+        **scatter_parts(ndf="results/{{sample}}/partial_ndf/parts/{scatteritem}/ndf",
+                        records="results/{{sample}}/partial_ndf/parts/{scatteritem}/record.npz"),
+    output:
+        ndf=directory("results/{sample}/partial_ndf/ndf"),
+        metrics="results/{sample}/partial_ndf/metrics.json",
+    params:
+        **config["partial_ndf"],
+    log:
+        "results/{sample}/logs/partial_ndf.log",
+    benchmark:
+        "results/{sample}/benchmarks/partial_ndf.tsv"
+    threads: 1 if SCATTERED else 2   # tiles of points in parallel; the join copies
+    resources:
+        mem_mb=1000 if SCATTERED else 3000,
+    script:
+        "../scripts/partial_ndf.py"
 
-    rule partial_ndf:
-        input:
-            **PARTIAL_NDF_INPUTS,
-        output:
-            ndf=directory("results/{sample}/partial_ndf/ndf"),
-            metrics="results/{sample}/partial_ndf/metrics.json",
-        params:
-            **config["partial_ndf"],
-        log:
-            "results/{sample}/logs/partial_ndf.log",
-        benchmark:
-            "results/{sample}/benchmarks/partial_ndf.tsv"
-        threads: 2   # tiles of points in parallel
-        resources:
-            mem_mb=3000,
-        script:
-            "../scripts/partial_ndf.py"
 
-else:   # scatter.tiles > 1: one job per part of the points (whole tiles), joined bitwise as one run's
-
-    rule partial_ndf_part:
-        input:
-            **PARTIAL_NDF_INPUTS,
-        output:
-            ndf=temp(directory("results/{sample}/partial_ndf/parts/{scatteritem}/ndf")),
-            record=temp("results/{sample}/partial_ndf/parts/{scatteritem}/record.npz"),
-        params:
-            **config["partial_ndf"],
-        log:
-            "results/{sample}/logs/partial_ndf/{scatteritem}.log",
-        benchmark:
-            "results/{sample}/benchmarks/partial_ndf/{scatteritem}.tsv"
-        threads: 1
-        resources:
-            mem_mb=3000,
-        script:
-            "../scripts/partial_ndf.py"
-
-    rule partial_ndf:
-        input:
-            geometry="results/{sample}/separate/geometry.json",
-            grid="results/{sample}/resample/grid.json",
-            ndf=gather.tiles("results/{{sample}}/partial_ndf/parts/{scatteritem}/ndf"),
-            records=gather.tiles("results/{{sample}}/partial_ndf/parts/{scatteritem}/record.npz"),
-        output:
-            ndf=directory("results/{sample}/partial_ndf/ndf"),
-            metrics="results/{sample}/partial_ndf/metrics.json",
-        params:
-            **config["partial_ndf"],
-        log:
-            "results/{sample}/logs/partial_ndf.log",
-        benchmark:
-            "results/{sample}/benchmarks/partial_ndf.tsv"
-        threads: 1
-        resources:
-            mem_mb=1000,
-        script:
-            "../scripts/partial_ndf.py"
+use rule partial_ndf as partial_ndf_part with:   # one part of the points (whole tiles); unused at scatter.tiles 1
+    input:
+        **PARTIAL_NDF_INPUTS,
+    output:
+        ndf=temp(directory("results/{sample}/partial_ndf/parts/{scatteritem}/ndf")),
+        record=temp("results/{sample}/partial_ndf/parts/{scatteritem}/record.npz"),
+    log:
+        "results/{sample}/logs/partial_ndf/{scatteritem}.log",
+    benchmark:
+        "results/{sample}/benchmarks/partial_ndf/{scatteritem}.tsv"
+    threads: 1
+    resources:
+        mem_mb=3000,

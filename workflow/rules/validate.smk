@@ -22,7 +22,7 @@ rule heldout_capture:
     input:
         unpack(virtual_scene),
     output:
-        directory("results/{sample}/validate/heldout/{view}"),
+        capture=directory("results/{sample}/validate/heldout/{view}"),
     params:
         theta_deg=lambda wc: HELDOUT_VIEWS[wc.view]["theta_deg"],
         phi_deg=lambda wc: HELDOUT_VIEWS[wc.view]["phi_deg"],
@@ -49,61 +49,35 @@ BASELINE_INPUTS = {
 }
 
 
-if SCATTER_TILES == 1:
+rule baseline_ward:   # all points; with scatter.tiles > 1 the join of baseline_ward_part's fits (bitwise the same)
+    input:
+        **BASELINE_INPUTS,
+        **scatter_parts(records="results/{{sample}}/baseline/parts/{scatteritem}.npz"),
+    output:
+        model=directory("results/{sample}/baseline/ward"),
+        metrics="results/{sample}/baseline/metrics.json",
+    params:
+        max_nfev=config["baseline"]["max_nfev"],
+    log:
+        "results/{sample}/logs/baseline_ward.log",
+    benchmark:
+        "results/{sample}/benchmarks/baseline_ward.tsv"
+    threads: 1
+    resources:
+        mem_mb=2000,
+    script:
+        "../scripts/baseline_ward.py"
 
-    rule baseline_ward:
-        input:
-            **BASELINE_INPUTS,
-        output:
-            model=directory("results/{sample}/baseline/ward"),
-            metrics="results/{sample}/baseline/metrics.json",
-        params:
-            max_nfev=config["baseline"]["max_nfev"],
-        log:
-            "results/{sample}/logs/baseline_ward.log",
-        benchmark:
-            "results/{sample}/benchmarks/baseline_ward.tsv"
-        threads: 1
-        resources:
-            mem_mb=2000,
-        script:
-            "../scripts/baseline_ward.py"
 
-else:   # scatter.tiles > 1: the per-point LM fits in part jobs, joined bitwise as one run's
-
-    rule baseline_ward_part:
-        input:
-            **BASELINE_INPUTS,
-        output:
-            record=temp("results/{sample}/baseline/parts/{scatteritem}.npz"),
-        params:
-            max_nfev=config["baseline"]["max_nfev"],
-        log:
-            "results/{sample}/logs/baseline_ward/{scatteritem}.log",
-        benchmark:
-            "results/{sample}/benchmarks/baseline_ward/{scatteritem}.tsv"
-        threads: 1
-        resources:
-            mem_mb=2000,
-        script:
-            "../scripts/baseline_ward.py"
-
-    rule baseline_ward:
-        input:
-            **BASELINE_INPUTS,
-            records=gather.tiles("results/{{sample}}/baseline/parts/{scatteritem}.npz"),
-        output:
-            model=directory("results/{sample}/baseline/ward"),
-            metrics="results/{sample}/baseline/metrics.json",
-        log:
-            "results/{sample}/logs/baseline_ward.log",
-        benchmark:
-            "results/{sample}/benchmarks/baseline_ward.tsv"
-        threads: 1
-        resources:
-            mem_mb=2000,
-        script:
-            "../scripts/baseline_ward.py"
+use rule baseline_ward as baseline_ward_part with:   # one part's per-point fits; unused at scatter.tiles 1
+    input:
+        **BASELINE_INPUTS,
+    output:
+        record=temp("results/{sample}/baseline/parts/{scatteritem}.npz"),
+    log:
+        "results/{sample}/logs/baseline_ward/{scatteritem}.log",
+    benchmark:
+        "results/{sample}/benchmarks/baseline_ward/{scatteritem}.tsv"
 
 
 rule validate:

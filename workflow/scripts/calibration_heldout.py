@@ -120,11 +120,14 @@ def main() -> None:
             if scoring == "as_recorded" and s == sample:
                 pass                                   # the virtual sample's own validate/metrics.json
             elif not (out / "metrics.json").is_file() or not args.score_only or scoring == "true_geometry":
-                validate.run(svbrdf=f"results/{s}/svbrdf", ward=f"results/{s}/baseline/ward", heldout=views,
-                             out_dir=out / "predictions", metrics_out=out / "metrics.json", images_out=out / "images",
-                             fit_benchmarks=[f"results/{s}/benchmarks/{st}.tsv"
-                                             for st in ("partial_ndf", "cluster", "synthesize", "params", "refine")],
-                             ward_benchmark=f"results/{s}/benchmarks/baseline_ward.tsv", rig=args.rig)
+                validate.run(validate.Inputs(svbrdf=Path(f"results/{s}/svbrdf"), heldout=list(views.values()),
+                                             ward=Path(f"results/{s}/baseline/ward"), rig=args.rig),
+                             validate.Outputs(metrics=out / "metrics.json", images=out / "images",
+                                              predictions=out / "predictions"),
+                             validate.Settings(views=tuple(views), fit_benchmarks=tuple(
+                                 f"results/{s}/benchmarks/{st}.tsv"
+                                 for st in ("partial_ndf", "cluster", "synthesize", "params", "refine")),
+                                 ward_benchmark=f"results/{s}/benchmarks/baseline_ward.tsv"))
             m = read_json(out / "metrics.json")
             record.setdefault(label, {})[scoring] = {k: m.get(k) for k in ("heldout_rel_l2", "heldout_specular_rel_l2",
                                                                            "baseline_ward_rel_l2")}

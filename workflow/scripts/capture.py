@@ -1,7 +1,4 @@
 from facetsynth.stages import capture
-from facetsynth.stages.runner import run_stage
+from facetsynth.stages.runner import run_script
 
-run_stage(snakemake, capture.run, source=snakemake.params.source, path=snakemake.input.path,
-          out_dir=snakemake.output[0], rig=snakemake.params.rig, seed=snakemake.params.seed,
-          noise=snakemake.params.noise, rotation_deg=snakemake.params.rotation_deg,
-          threads=snakemake.threads)
+run_script(snakemake, capture)

@@ -1,7 +1,4 @@
 from facetsynth.stages import hdr
-from facetsynth.stages.runner import run_stage
+from facetsynth.stages.runner import run_script
 
-run_stage(snakemake, hdr.run, capture_dir=snakemake.input[0], frames_dir=snakemake.output.frames,
-          manifest_out=snakemake.output.manifest, metrics_out=snakemake.output.metrics,
-          floor_sigmas=snakemake.params.floor_sigmas, saturation_margin=snakemake.params.saturation_margin,
-          threads=snakemake.threads)
+run_script(snakemake, hdr)

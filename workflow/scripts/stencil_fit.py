@@ -1,5 +1,4 @@
 from facetsynth.stages import stencil_fit
-from facetsynth.stages.runner import run_stage
+from facetsynth.stages.runner import run_script
 
-run_stage(snakemake, stencil_fit.run, svbrdf_dir=snakemake.input.svbrdf, labels_path=snakemake.input.labels,
-          geometry=snakemake.input.geometry, out_dir=snakemake.output.models, metrics_out=snakemake.output.metrics)
+run_script(snakemake, stencil_fit)

@@ -16,6 +16,7 @@ from ..frames import map_frames
 from ..hdr import SensorModel
 from ..rig.session import RigDescription, capture as rig_capture
 from ..virtual_rig import VirtualRig, capture as virtual_capture
+from .common import RuleFiles, StageSettings
 
 log = logging.getLogger(__name__)
 
@@ -23,19 +24,45 @@ CHECK_THREADS = min(4, os.cpu_count() or 1)
 """Threads reading a capture's exposures in :func:`inspect_capture` (EXR decoding releases the GIL)."""
 
 
-def run(source: str, path: str | Path, out_dir: str | Path, rig: str | Path, seed: int, noise: bool,
-        rotation_deg: float = 0.0, threads: int = 1) -> None:
-    """Produce the capture folder ``out_dir`` (``manifest.json`` + frames) for one sample: a virtual scene
-    turned by ``rotation_deg`` on the virtual rig ``rig``, its frames rendered on ``threads`` threads; a
-    capture folder made elsewhere (``import``) or a light dome's ``.lp`` file (``lp``, its photos read where they
-    are); or the real rig of the description ``path``
+@dataclass(frozen=True)
+class Inputs(RuleFiles):
+    """Rule ``capture``'s inputs: the sample sheet's ``path`` (a scene, a capture folder, an ``.lp`` file or a rig
+    description), the files it names (``sources``) and, for a virtual sample, its rig description."""
+    path: Path
+    sources: list[Path] | None = None
+    rig: Path | None = None
+
+
+@dataclass(frozen=True)
+class Outputs(RuleFiles):
+    """Rule ``capture``'s output: the capture folder (``manifest.json`` + frames)."""
+    capture: Path
+
+
+@dataclass(frozen=True)
+class Settings(StageSettings):
+    """The rule's params: the sample sheet's ``source`` and ``rotation_deg``, the sample's rig description,
+    config ``seed`` and ``virtual.noise``."""
+    source: str = "virtual"         # virtual, import, lp or rig
+    rig: str | Path | None = None   # the virtual rig's description (virtual samples)
+    seed: int = 0                   # config seed: the virtual sensor's noise
+    noise: bool = True              # config virtual.noise: sensor noise in a virtual capture
+    rotation_deg: float = 0.0       # the virtual scene turned by this
+
+
+def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threads: int = 1) -> None:
+    """Produce the capture folder ``outputs.capture`` (``manifest.json`` + frames) for one sample: a virtual
+    scene ``inputs.path`` turned by ``settings.rotation_deg`` on the virtual rig ``settings.rig``, its frames
+    rendered on ``threads`` threads; a capture folder made elsewhere (``import``) or a light dome's ``.lp`` file
+    (``lp``, its photos read where they are); or the real rig of the description ``inputs.path``
     (:mod:`facetsynth.rig.session`: resumes an interrupted capture)."""
-    if source == "virtual":
-        log.info("virtual capture of scene %s turned by %g deg with rig %s (seed %d, noise %s)", path, rotation_deg,
-                 rig, seed, noise)
-        virtual_capture(path, VirtualRig.load(rig), out_dir, seed=seed, noise=noise, rotation_deg=rotation_deg,
-                        threads=threads)
-    elif source in ("import", "lp"):
+    path, out_dir = inputs.path, outputs.capture
+    if settings.source == "virtual":
+        log.info("virtual capture of scene %s turned by %g deg with rig %s (seed %d, noise %s)", path,
+                 settings.rotation_deg, settings.rig, settings.seed, settings.noise)
+        virtual_capture(path, VirtualRig.load(settings.rig), out_dir, seed=settings.seed, noise=settings.noise,
+                        rotation_deg=settings.rotation_deg, threads=threads)
+    elif settings.source in ("import", "lp"):
         import_capture(path, out_dir)
     else:
         rig_capture(RigDescription.load(path), out_dir)

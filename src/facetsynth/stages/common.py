@@ -26,8 +26,9 @@ class StageSettings:
 
     @classmethod
     def from_params(cls, params):
-        """From a rule's ``params`` (the config section's keys); lists become tuples (a frozen settings object)."""
-        return cls(**{f.name: _frozen(getattr(params, f.name)) for f in fields(cls)})
+        """From a rule's ``params`` (the config section's keys); lists become tuples (a frozen settings object);
+        a field the rule does not pass keeps its default (a stage's measured knobs that are no config keys)."""
+        return cls(**{f.name: _frozen(getattr(params, f.name)) for f in fields(cls) if hasattr(params, f.name)})
 
 
 def _frozen(value):

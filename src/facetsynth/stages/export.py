@@ -22,14 +22,34 @@ from ..export.gltf import GLTF_NAME, export_gltf, read_gltf
 from ..fileio import read_json, read_rgb, read_yaml, write_json
 from ..predict import FrameRenderer
 from ..scene import Scene
+from .common import RuleFiles, StageSettings
 from .validate import diffuse_truth, true_rig, trusted_scores
 
 log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
-class Settings:
-    """The export's knobs: measured defaults, not in the workflow's config (nothing there to trade yet)."""
+class Inputs(RuleFiles):
+    """Rule ``export_gltf``'s inputs: the SVBRDF folder; for a sample with held-out truth (else None) the
+    held-out captures (one folder per view of ``Settings.views``), validate's metrics and the truth's rig."""
+    svbrdf: Path
+    heldout: list[Path] | None = None
+    validate_metrics: Path | None = None
+    rig: Path | None = None
+
+
+@dataclass(frozen=True)
+class Outputs(RuleFiles):
+    """Rule ``export_gltf``'s outputs: the glTF folder and the export's figures."""
+    gltf: Path
+    metrics: Path
+
+
+@dataclass(frozen=True)
+class Settings(StageSettings):
+    """The export's knobs: measured defaults, not in the workflow's config (nothing there to trade yet); and the
+    rule's ``views``, the names of the held-out views in the order of ``Inputs.heldout``."""
+    views: tuple = ()              # rule param: the held-out views' names (config validate.views)
     weight_quantum: float = 0.01   # eq. 18 weights rounded to this before fitting each distinct mixture once
                                    # (demo: 639 mixtures for 28224 points; alphas within 0.5 % of the exact fit)
     iterations: int = 12           # Levenberg-Marquardt steps of the GGX fit (exact GGX tables: converged by 12)
@@ -52,43 +72,50 @@ def score_view(model, folder: str | Path, supersample: int = 1) -> dict[str, Any
     return trusted_scores(truth, prediction, mask, diffuse, specular_mask)
 
 
-def run(svbrdf: str | Path, gltf_out: str | Path, metrics_out: str | Path,
-        heldout: dict[str, str | Path] | None = None, validate_metrics: str | Path | None = None,
-        rig: str | Path | None = None, settings: Settings = Settings()) -> None:
-    """Export, then score the portable material on the held-out views (if any) against the full SVBRDF's."""
+def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threads: int = 1) -> None:
+    """Export, then score the portable material on the held-out views (if any) against the full SVBRDF's;
+    write export/metrics.json."""
     start = time.perf_counter()
-    summary = export_gltf(svbrdf, gltf_out, weight_quantum=settings.weight_quantum, iterations=settings.iterations,
-                          fresnel_cos_min=settings.fresnel_cos_min)
+    summary = export_gltf(inputs.svbrdf, outputs.gltf, weight_quantum=settings.weight_quantum,
+                          iterations=settings.iterations, fresnel_cos_min=settings.fresnel_cos_min)
     export_seconds = time.perf_counter() - start
     metrics: dict[str, Any] = {
-        "gltf": str(Path(gltf_out) / GLTF_NAME), "files": [Path(f).name for f in summary["files"]],
+        "gltf": str(Path(outputs.gltf) / GLTF_NAME), "files": [Path(f).name for f in summary["files"]],
         "fit_seconds": summary["fit"]["fit_seconds"], "export_seconds": export_seconds,
         "fit": summary["fit"], "round_trip": summary["round_trip"],
         "normalisation": "heldout_rel_l2 and heldout_specular_rel_l2 as validate/metrics.json (same frames, sample "
                          "mask and diffuse truth); portable = the material read back from the written glTF "
                          "(8-bit textures), rendered by facetsynth.ggx; full = validate/metrics.json's; "
                          "loss = portable - full", "views": {}}
-    if heldout:
-        full = read_json(validate_metrics)["views"] if validate_metrics else {}
-        supersample = int(read_yaml(rig).get("supersample", 1)) if rig else 1
-        portable = read_gltf(Path(gltf_out) / GLTF_NAME)
-        for view, folder in heldout.items():
-            scores = score_view(portable, folder, supersample)
-            record = {"portable_" + k[len("heldout_"):]: v for k, v in scores.items()}
-            for key in ("rel_l2", "specular_rel_l2"):
-                ours = full.get(view, {}).get("heldout_" + key)
-                record["full_" + key] = ours
-                mine = record["portable_" + key]
-                record["loss_" + key] = None if ours is None or mine is None else mine - ours
-            metrics["views"][view] = record
-            log.info("%s: held-out rel L2 portable %.4f, full %s", view, record["portable_rel_l2"],
-                     record["full_rel_l2"])
+    if inputs.heldout:
+        metrics.update(heldout_scores(inputs, Path(outputs.gltf) / GLTF_NAME, settings.views))
+    write_json(outputs.metrics, metrics)
 
-        def mean(key):
-            values = [v[key] for v in metrics["views"].values() if v.get(key) is not None]
-            return float(np.mean(values)) if values else None
 
-        for key in ("portable_rel_l2", "full_rel_l2", "loss_rel_l2", "portable_specular_rel_l2",
-                    "full_specular_rel_l2", "loss_specular_rel_l2"):
-            metrics["heldout_" + key] = mean(key)
-    write_json(metrics_out, metrics)
+def heldout_scores(inputs: Inputs, gltf: Path, views) -> dict[str, Any]:
+    """The portable material read back from ``gltf`` on every held-out view (``inputs.heldout``, named by
+    ``views``) beside the full SVBRDF's (``inputs.validate_metrics``): per view and their means."""
+    full = read_json(inputs.validate_metrics)["views"] if inputs.validate_metrics else {}
+    supersample = int(read_yaml(inputs.rig).get("supersample", 1)) if inputs.rig else 1
+    portable = read_gltf(gltf)
+    out: dict[str, Any] = {"views": {}}
+    for view, folder in zip(views, inputs.heldout):
+        scores = score_view(portable, folder, supersample)
+        record = {"portable_" + k[len("heldout_"):]: v for k, v in scores.items()}
+        for key in ("rel_l2", "specular_rel_l2"):
+            ours = full.get(view, {}).get("heldout_" + key)
+            record["full_" + key] = ours
+            mine = record["portable_" + key]
+            record["loss_" + key] = None if ours is None or mine is None else mine - ours
+        out["views"][view] = record
+        log.info("%s: held-out rel L2 portable %.4f, full %s", view, record["portable_rel_l2"],
+                 record["full_rel_l2"])
+
+    def mean(key):
+        values = [v[key] for v in out["views"].values() if v.get(key) is not None]
+        return float(np.mean(values)) if values else None
+
+    for key in ("portable_rel_l2", "full_rel_l2", "loss_rel_l2", "portable_specular_rel_l2",
+                "full_specular_rel_l2", "loss_specular_rel_l2"):
+        out["heldout_" + key] = mean(key)
+    return out

@@ -36,15 +36,36 @@ from ..lightplane import LightTriangulation
 from ..metrics import relative_errors
 from ..response import Response, ResponseSettings, recover_response
 from ..transfer import Transfer, parse as parse_transfer
-from .common import flag_degenerate
+from .common import RuleFiles, StageSettings, flag_degenerate
 
 log = logging.getLogger(__name__)
 
 
-def run(capture_dir: str | Path, frames_dir: str | Path, manifest_out: str | Path, metrics_out: str | Path,
-        floor_sigmas: float = 3.0, saturation_margin: float = 0.02, threads: int = 1,
+@dataclass(frozen=True)
+class Inputs(RuleFiles):
+    """Rule ``hdr``'s input: capture's folder (``manifest.json`` and the exposures)."""
+    capture: Path
+
+
+@dataclass(frozen=True)
+class Outputs(RuleFiles):
+    """Rule ``hdr``'s outputs: the merged frames' folder, their manifest and the stage's figures."""
+    frames: Path
+    manifest: Path
+    metrics: Path
+
+
+@dataclass(frozen=True)
+class Settings(StageSettings):
+    """The stage's knobs: config ``hdr`` (workflow/schemas/config.schema.yaml)."""
+    floor_sigmas: float = 3.0         # exposure values below floor_sigmas x read noise are ignored
+    saturation_margin: float = 0.02   # values above (1 - margin) x saturation count as clipped
+
+
+def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threads: int = 1, *,
         response_settings: ResponseSettings = ResponseSettings()) -> None:
-    """Merge every frame; write ``frames_dir/NNNN.exr``, an HDR manifest and metrics.
+    """Load, merge, write: every frame of the capture ``inputs.capture`` merged into ``outputs.frames/NNNN.exr``,
+    an HDR manifest ``outputs.manifest`` and ``outputs.metrics``.
 
     The output manifest describes the merged frames as a capture with one
     exposure of time 1 per frame and no clipping, so it is itself importable.
@@ -55,13 +76,13 @@ def run(capture_dir: str | Path, frames_dir: str | Path, manifest_out: str | Pat
     8-bit exposures (module docstring): the recovered or declared curve is in the metrics (``response``),
     a declared transfer and black level also as ``transfer``.
     """
-    capture = manifest_io.load(capture_dir)
+    capture = manifest_io.load(inputs.capture)
     manifest_path = Path(capture["_dir"]) / "manifest.json"
     _check_lights(capture, manifest_path)
     noise = capture.get("noise", {})
     sensor = SensorModel(saturation=capture.get("saturation"), read_sigma=noise.get("read_sigma", 0.0),
-                         shot_gain=noise.get("shot_gain", 0.0), floor_sigmas=floor_sigmas,
-                         saturation_margin=saturation_margin)
+                         shot_gain=noise.get("shot_gain", 0.0), floor_sigmas=settings.floor_sigmas,
+                         saturation_margin=settings.saturation_margin)
     shape = (capture["camera"]["height"], capture["camera"]["width"], 3)
     response = None
     transfer, black_level = _declared_transfer(capture, manifest_path)
@@ -73,12 +94,12 @@ def run(capture_dir: str | Path, frames_dir: str | Path, manifest_out: str | Pat
             response = _recover_response(capture, shape, manifest_path, response_settings)
             log.info("8-bit exposures: camera response recovered (Debevec-Malik 1997; scale from %s)",
                      ", ".join(response.scale_from))
-        sensor = response.sensor_model(floor_sigmas)
+        sensor = response.sensor_model(settings.floor_sigmas)
     elif transfer is not None:
         raise InputError(manifest_path, f'"transfer" ({transfer.describe()}) applies to 8-bit exposures only; '
                                         f"these are EXR (linear exposure values, e.g. "
                                         f"{capture['frames'][0]['exposures'][0]['file']}): drop the key")
-    frames_dir, manifest_out = Path(frames_dir), Path(manifest_out)
+    frames_dir, manifest_out = Path(outputs.frames), Path(outputs.manifest)
     key = {"capture": file_key(manifest_path), "sensor": asdict(sensor)}
     if response is not None:
         key["response"] = hashlib.sha256(response.linear.tobytes()).hexdigest()
@@ -155,7 +176,7 @@ def run(capture_dir: str | Path, frames_dir: str | Path, manifest_out: str | Pat
     if errors:
         metrics["median_rel_error"] = float(np.median(np.concatenate(errors)))
         log.info("HDR median relative error against the true radiance: %.5f", metrics["median_rel_error"])
-    write_json(metrics_out, metrics)
+    write_json(outputs.metrics, metrics)
 
 
 def _check_lights(capture: dict, manifest_path: Path) -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -17,23 +18,47 @@ from ..plane import PlaneGrid
 from ..rectify import native_resolution, visible_cells, warp_to_plane
 from ..render import radiance
 from ..scene import Scene
+from .common import RuleFiles, StageSettings
 
 log = logging.getLogger(__name__)
 
 
-def run(hdr_manifest: str | Path, frames_dir: str | Path, geometry_out: str | Path, metrics_out: str | Path,
-        resolution: int | str, filtername: str = "triangle", threads: int = 1) -> None:
-    """Warp every HDR frame onto a ``resolution``-cell-wide grid over the sample.
+@dataclass(frozen=True)
+class Inputs(RuleFiles):
+    """Rule ``rectify``'s inputs: hdr's merged frames (read through the manifest) and their manifest."""
+    manifest: Path
+    frames: Path | None = None
+
+
+@dataclass(frozen=True)
+class Outputs(RuleFiles):
+    """Rule ``rectify``'s outputs: the rectified frames' folder, the geometry and the stage's figures."""
+    frames: Path
+    geometry: Path
+    metrics: Path
+
+
+@dataclass(frozen=True)
+class Settings(StageSettings):
+    """The stage's knobs: config ``rectify`` (workflow/schemas/config.schema.yaml; ``resolution`` from the preset)."""
+    resolution: int | str = "auto"   # grid cells across the sample width; auto: as many as camera pixels see it
+    filter: str = "triangle"         # OpenImageIO warp filter
+
+
+def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threads: int = 1) -> None:
+    """Load, warp, write: every HDR frame of ``inputs.manifest`` onto a ``settings.resolution``-cell-wide grid
+    over the sample.
 
     ``resolution`` "auto": the grid with as many cells as camera pixels see the sample
     (:func:`facetsynth.rectify.native_resolution`), logged; ``resolution_rule`` in the metrics says which.
 
-    Writes ``frames_dir/NNNN.exr`` (R, G, B, ``saturated``), and
-    ``geometry_out`` (JSON): the grid and its (row, col) -> (x, y) mapping, the
+    Writes ``outputs.frames/NNNN.exr`` (R, G, B, ``saturated``), and
+    ``outputs.geometry`` (JSON): the grid and its (row, col) -> (x, y) mapping, the
     camera position (the view point V), the lights, the frame files and the
     ``visible`` cells. Cells are square; rows follow from the sample's aspect. Frames are warped on
     ``threads`` threads.
     """
+    hdr_manifest, resolution, filtername = inputs.manifest, settings.resolution, settings.filter
     capture = manifest_io.load(hdr_manifest)
     camera = manifest_io.camera(capture)
     width, height = capture["sample"]["width"], capture["sample"]["height"]
@@ -46,7 +71,7 @@ def run(hdr_manifest: str | Path, frames_dir: str | Path, geometry_out: str | Pa
         log.info("resolution auto: %d cells across, as many cells as camera pixels see the sample", resolution)
     grid = PlaneGrid(width, height, cols=resolution, rows=max(1, int(round(resolution * height / width))))
     visible = visible_cells(camera, grid)
-    frames_dir, geometry_out = Path(frames_dir), Path(geometry_out)
+    frames_dir, geometry_out = Path(outputs.frames), Path(outputs.geometry)
     key = {"hdr": file_key(hdr_manifest), "grid": grid.to_dict(), "filter": filtername}
     with atomic_dir(frames_dir, key) as staging:
 
@@ -78,7 +103,7 @@ def run(hdr_manifest: str | Path, frames_dir: str | Path, geometry_out: str | Pa
         log.info("registration error %.3f px (max %.3f), radiance median rel. error %.4f",
                  metrics["registration_error_px"], metrics["registration_error_px_max"],
                  metrics["radiance_median_rel_error"])
-    write_json(metrics_out, metrics)
+    write_json(outputs.metrics, metrics)
 
 
 def _accuracy(scene: Scene, grid: PlaneGrid, view: np.ndarray, capture: dict, frames_dir: Path,

@@ -32,7 +32,7 @@ from ..metrics import finite_or_none
 from ..predict import FrameRenderer, load_model
 from ..rti import fits
 from ..selfcheck import FrameScores, heldout_lights, relit_frames
-from .common import StageSettings
+from .common import RuleFiles, StageSettings
 from .validate import _to_png, side_by_side
 
 log = logging.getLogger(__name__)
@@ -54,28 +54,45 @@ DEFINITION = ("relative L2 = sqrt(sum (pred - meas)^2 / sum meas^2) over the sam
 
 
 @dataclass(frozen=True)
+class Inputs(RuleFiles):
+    """Rule ``selfcheck``'s inputs: the fitted SVBRDF folder, hdr's manifest and its frames folder (the files the
+    manifest lists: a dependency, read through the manifest; None outside the workflow), separate's geometry
+    (the lights' intensities as the fit saw them; None: the manifest's)."""
+    svbrdf: Path
+    manifest: Path
+    frames: Path | None = None
+    geometry: Path | None = None
+
+
+@dataclass(frozen=True)
+class Outputs(RuleFiles):
+    """Rule ``selfcheck``'s outputs: the scores and the folder of the worst frames' pictures."""
+    metrics: Path
+    images: Path
+
+
+@dataclass(frozen=True)
 class Settings(StageSettings):
     """The stage's knobs: config ``selfcheck`` (workflow/schemas/config.schema.yaml)."""
     heldout_every: int = 10    # every 10th light is held out of the fit (0: none) ...
     relit_every: int = 8       # ... and every 8th of the others relit
 
 
-def run(svbrdf: str | Path, manifest: str | Path, metrics_out: str | Path, images_out: str | Path,
-        settings: Settings = Settings(), geometry: str | Path | None = None) -> dict:
-    """Relight both subsets from the model in ``svbrdf``, score them against the frames of the hdr
-    ``manifest``, write the metrics and pictures; returns the metrics. The lights' intensities are those the
-    fit saw, from ``geometry`` (``separate/geometry.json``: estimated for a capture that stated none) when
-    given, else the manifest's."""
-    m = manifest_io.load(manifest)
+def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threads: int = 1) -> dict:
+    """Relight both subsets from the model in ``inputs.svbrdf``, score them against the frames of the hdr
+    ``inputs.manifest``, write the metrics and pictures; returns the metrics. The lights' intensities are
+    those the fit saw, from ``inputs.geometry`` (``separate/geometry.json``: estimated for a capture that
+    stated none) when given, else the manifest's."""
+    m = manifest_io.load(inputs.manifest)
     nominal = copy.deepcopy(m)      # the per-pixel baselines fit the photos as their users do: nominal lights
-    if geometry is not None:
-        for frame, seen in zip(m["frames"], read_json(geometry)["frames"]):
+    if inputs.geometry is not None:
+        for frame, seen in zip(m["frames"], read_json(inputs.geometry)["frames"]):
             frame["light"]["intensity"] = seen["light"]["intensity"]
-    renderer = FrameRenderer(load_model(svbrdf), manifest_io.camera(m))
+    renderer = FrameRenderer(load_model(inputs.svbrdf), manifest_io.camera(m))
     sample = renderer.sample_mask
     held = heldout_lights(len(m["frames"]), settings.heldout_every)
     subsets = {"relit": relit_frames(held, settings.relit_every), "heldout": np.flatnonzero(held)}
-    images_out = Path(images_out)
+    images_out = Path(outputs.images)
     images_out.mkdir(parents=True, exist_ok=True)
     metrics: dict = {"definition": DEFINITION, "frames": len(m["frames"]), "sample_pixels": int(sample.sum()),
                      "heldout_every": settings.heldout_every, "relit_every": settings.relit_every}
@@ -84,34 +101,7 @@ def run(svbrdf: str | Path, manifest: str | Path, metrics_out: str | Path, image
         metrics["baselines"] = {kind: {name: finite_or_none(s.rel_l2) for name, s in scored.items()}
                                 for kind, (scored, _) in baselines.items()}
     for name, frames in subsets.items():
-        scores, picture = FrameScores(), None
-        for q in tqdm(frames, desc=f"selfcheck: {name}", unit="frame"):
-            light = m["frames"][q]["light"]
-            exposure = m["frames"][q]["exposures"][0]             # hdr's merged frame (time 1: radiance)
-            measured, clipped = read_frame(exposure["file"])
-            measured = measured / float(exposure["time"])
-            predicted = renderer.radiance(manifest_io.light_point(light), light["intensity"])
-            diffuse = renderer.radiance(manifest_io.light_point(light), light["intensity"], diffuse_only=True)
-            scores.add(q, measured, predicted, diffuse, sample & ~clipped)
-            if scores.worst_frame() == q:         # the worst frame so far: its images are kept
-                picture = (measured, predicted, None if baselines is None else baselines["hsh3"][1](q))
-        psnr = np.asarray(scores.psnr_db)
-        lit = psnr[np.isfinite(psnr)]
-        worst = scores.worst_frame()
-        metrics[name] = {"frames": len(frames), "rel_l2": finite_or_none(scores.rel_l2),
-                         "specular_rel_l2": finite_or_none(scores.specular_rel_l2),
-                         "frame_psnr_median_db": finite_or_none(np.median(lit)) if lit.size else None,
-                         "frame_psnr_worst_db": finite_or_none(lit.min()) if lit.size else None,
-                         "worst_frame": worst}
-        if picture is not None:
-            measured, predicted, hsh = picture
-            peak = float(measured[sample].max()) if sample.any() else 1.0
-            picture = side_by_side(measured, predicted, hsh, peak)
-            zoom = max(1, -(-PICTURE_HEIGHT // picture.shape[0]))    # small cameras: pixels shown zoom x zoom
-            _to_png(images_out / f"{name}_worst.png", picture.repeat(zoom, axis=0).repeat(zoom, axis=1))
-        log.info("%s: %d frames, rel L2 %s, specular %s, frame PSNR median %s dB, worst %s dB (frame %s)", name,
-                 len(frames), metrics[name]["rel_l2"], metrics[name]["specular_rel_l2"],
-                 metrics[name]["frame_psnr_median_db"], metrics[name]["frame_psnr_worst_db"], worst)
+        metrics[name] = subset_scores(m, renderer, name, frames, baselines, images_out)
     for kind, scores in metrics.get("baselines", {}).items():
         log.info("per-pixel %s: relit %s, held-out %s", kind, scores["relit"], scores["heldout"])
     poor = (metrics["heldout"]["rel_l2"] or 0.0) > POOR_FIT_REL_L2
@@ -119,8 +109,45 @@ def run(svbrdf: str | Path, manifest: str | Path, metrics_out: str | Path, image
     if poor:
         log.warning("POOR FIT: the held-out lights miss by %.3f relative L2 (more than %.2f): the model does not "
                     "predict this capture's own lights", metrics["heldout"]["rel_l2"], POOR_FIT_REL_L2)
-    write_json(metrics_out, metrics)
+    write_json(outputs.metrics, metrics)
     return metrics
+
+
+def subset_scores(m: dict, renderer: FrameRenderer, name: str, frames: np.ndarray, baselines,
+                  images_out: Path) -> dict:
+    """The subset ``name`` (frames ``frames`` of the manifest ``m``) relit by ``renderer`` and scored against
+    hdr's frames over the sample's unclipped pixels; its worst frame's picture written to ``images_out``
+    (beside the per-pixel HSH order 3 where ``baselines``). Returns the subset's record."""
+    sample = renderer.sample_mask
+    scores, picture = FrameScores(), None
+    for q in tqdm(frames, desc=f"selfcheck: {name}", unit="frame"):
+        light = m["frames"][q]["light"]
+        exposure = m["frames"][q]["exposures"][0]             # hdr's merged frame (time 1: radiance)
+        measured, clipped = read_frame(exposure["file"])
+        measured = measured / float(exposure["time"])
+        predicted = renderer.radiance(manifest_io.light_point(light), light["intensity"])
+        diffuse = renderer.radiance(manifest_io.light_point(light), light["intensity"], diffuse_only=True)
+        scores.add(q, measured, predicted, diffuse, sample & ~clipped)
+        if scores.worst_frame() == q:         # the worst frame so far: its images are kept
+            picture = (measured, predicted, None if baselines is None else baselines["hsh3"][1](q))
+    psnr = np.asarray(scores.psnr_db)
+    lit = psnr[np.isfinite(psnr)]
+    worst = scores.worst_frame()
+    record = {"frames": len(frames), "rel_l2": finite_or_none(scores.rel_l2),
+              "specular_rel_l2": finite_or_none(scores.specular_rel_l2),
+              "frame_psnr_median_db": finite_or_none(np.median(lit)) if lit.size else None,
+              "frame_psnr_worst_db": finite_or_none(lit.min()) if lit.size else None,
+              "worst_frame": worst}
+    if picture is not None:
+        measured, predicted, hsh = picture
+        peak = float(measured[sample].max()) if sample.any() else 1.0
+        picture = side_by_side(measured, predicted, hsh, peak)
+        zoom = max(1, -(-PICTURE_HEIGHT // picture.shape[0]))    # small cameras: pixels shown zoom x zoom
+        _to_png(images_out / f"{name}_worst.png", picture.repeat(zoom, axis=0).repeat(zoom, axis=1))
+    log.info("%s: %d frames, rel L2 %s, specular %s, frame PSNR median %s dB, worst %s dB (frame %s)", name,
+             len(frames), record["rel_l2"], record["specular_rel_l2"], record["frame_psnr_median_db"],
+             record["frame_psnr_worst_db"], worst)
+    return record
 
 
 def per_pixel_baselines(m: dict, held: np.ndarray, subsets: dict[str, np.ndarray], sample: np.ndarray):

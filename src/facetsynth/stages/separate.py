@@ -36,7 +36,7 @@ from ..microfacet import half_vector
 from ..render import light_geometry, towards
 from ..selfcheck import heldout_lights
 from ..separation import brdf_samples, diffuse_level, specular_residual
-from .common import RectifiedCapture, StageSettings, flag_degenerate, strided, tiles
+from .common import RectifiedCapture, RuleFiles, StageSettings, flag_degenerate, strided, tiles
 
 log = logging.getLogger(__name__)
 
@@ -67,6 +67,25 @@ MIN_COS = 1e-3
 
 
 @dataclass(frozen=True)
+class Inputs(RuleFiles):
+    """Rule ``separate``'s inputs: rectify's geometry and its frames (read through the geometry's file names)."""
+    geometry: Path
+    frames: Path | None = None
+
+
+@dataclass(frozen=True)
+class Outputs(RuleFiles):
+    """Rule ``separate``'s outputs: kd, the specular residual and its validity, the stage's figures; the shading
+    normals and rectify's geometry with them (the later stages' geometry; None: not written)."""
+    kd: Path
+    specular: Path
+    valid: Path
+    metrics: Path
+    geometry: Path | None = None
+    normals: Path | None = None
+
+
+@dataclass(frozen=True)
 class Settings(StageSettings):
     """The stage's knobs: config ``separate`` (workflow/schemas/config.schema.yaml)."""
     threshold: float = 0.05   # eq. 9: samples darker than threshold x the point's average intensity are left out
@@ -78,26 +97,25 @@ class Settings(StageSettings):
                                            # (a dome) only (AUTO_NORMALS), True always, False: the plane's +z
 
 
-def run(geometry: str | Path, kd_out: str | Path, specular_out: str | Path, valid_out: str | Path,
-        metrics_out: str | Path, settings: Settings = Settings(), threads: int = 1, *,
-        geometry_out: str | Path | None = None, normals_out: str | Path | None = None) -> None:
-    """Per point and light: rho by eq. 8, kd = pi rho_d by eq. 9 (:func:`~facetsynth.separation.diffuse_level`),
-    rho~_s = rho - rho_d.
+def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threads: int = 1) -> None:
+    """Load, separate, write: per point and light of ``inputs.geometry``, rho by eq. 8, kd = pi rho_d by eq. 9
+    (:func:`~facetsynth.separation.diffuse_level`), rho~_s = rho - rho_d.
 
     Writes ``kd`` (EXR on the rectified grid), the specular residual (P, F, 3) in half floats
     (:func:`~facetsynth.fileio.as_half`) and the sample validity (P, F) as memory-mappable .npy
     (frames are streamed in; memory does not grow with the sample size).
     Invalid samples: saturated, a point outside the camera's view, a light held out for the self-check
     (``settings.heldout_every``), a light at or behind the point's facet, or a cast shadow (CAST_SHADOW).
-    Frames are read on ``threads`` threads. ``normals_out``: the shading normals (P, 3) float32 .npy;
-    ``geometry_out``: rectify's ``geometry`` with them (the later stages' geometry).
+    Frames are read on ``threads`` threads. ``outputs.normals``: the shading normals (P, 3) float32 .npy;
+    ``outputs.geometry``: rectify's geometry with them (the later stages' geometry).
     """
-    capture = RectifiedCapture.load(geometry)
-    g = read_json(geometry)
+    capture = RectifiedCapture.load(inputs.geometry)
+    g = read_json(inputs.geometry)
     estimate_intensities = "reference_region" in g or "intensities" in g.get("assumed", [])
     settings = replace(settings, shading_normals=uses_normals(settings.shading_normals, capture))
     n_points, n_frames = capture.n_points, len(capture.frame_files)
-    with atomic_path(specular_out, suffix=".npy") as tmp_spec, atomic_path(valid_out, suffix=".npy") as tmp_valid:
+    with atomic_path(outputs.specular, suffix=".npy") as tmp_spec, \
+            atomic_path(outputs.valid, suffix=".npy") as tmp_valid:
         # eq. 8's samples in float32 beside the output (a temporary: swept if this process dies), so that
         # eq. 9's kd is not rounded to half floats; the residual goes out in half floats
         scratch = tmp_spec.with_name(tmp_spec.name + ".eq8.npy")
@@ -106,11 +124,11 @@ def run(geometry: str | Path, kd_out: str | Path, specular_out: str | Path, vali
                                                      g if estimate_intensities else None)
         finally:
             scratch.unlink(missing_ok=True)
-    if normals_out is not None:
-        write_npy(normals_out, normals.astype(np.float32))
-    if geometry_out is not None:
-        _write_geometry(g, Path(geometry).parent, geometry_out, normals_out, factors)
-    write_exr(kd_out, {"RGB": kd.reshape(capture.grid.rows, capture.grid.cols, 3)},
+    if outputs.normals is not None:
+        write_npy(outputs.normals, normals.astype(np.float32))
+    if outputs.geometry is not None:
+        _write_geometry(g, Path(inputs.geometry).parent, outputs.geometry, outputs.normals, factors)
+    write_exr(outputs.kd, {"RGB": kd.reshape(capture.grid.rows, capture.grid.cols, 3)},
               {"quantity": "kd (diffuse albedo), paper 002 eq. 9" + (
                   f" (the mean of the lowest {100 * settings.lowest:g} % of the qualifying samples)"
                   if settings.lowest else "")})
@@ -145,7 +163,7 @@ def run(geometry: str | Path, kd_out: str | Path, specular_out: str | Path, vali
                                           if select.any() else None)
         if select.any():
             log.info("kd median relative error %.4f", metrics["kd_median_rel_error"])
-    write_json(metrics_out, metrics)
+    write_json(outputs.metrics, metrics)
 
 
 def _separate(capture: RectifiedCapture, settings: Settings, threads: int, scratch: Path, specular_out: Path,

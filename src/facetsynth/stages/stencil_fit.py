@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -39,9 +40,31 @@ from ..stencil.grid import sample_utia
 from ..stencil.kurt import fit_kurt, kurt_evaluate_utia
 from ..stencil.model import evaluate_utia
 from ..stencil.scores import score_brdf
-from .common import RectifiedCapture
+from .common import RectifiedCapture, RuleFiles, StageSettings
 
 log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Inputs(RuleFiles):
+    """Rule ``stencil_fit``'s inputs: the fitted SVBRDF folder, cluster's labels, separate's geometry (the truth
+    of a virtual capture)."""
+    svbrdf: Path
+    labels: Path
+    geometry: Path
+
+
+@dataclass(frozen=True)
+class Outputs(RuleFiles):
+    """Rule ``stencil_fit``'s outputs: the models folder (stencil.json, the BRDF Explorer shaders) and the
+    stage's figures."""
+    models: Path
+    metrics: Path
+
+
+@dataclass(frozen=True)
+class Settings(StageSettings):
+    """The stage's knobs: none (the stencil fit chooses its anisotropy modes from the data)."""
 
 
 def true_axes_deg(alpha_u: np.ndarray, alpha_v: np.ndarray, phi_frame: np.ndarray) -> list[list[float]]:
@@ -96,26 +119,28 @@ def fit_clusters(model: SVBRDF, representatives: np.ndarray, members: np.ndarray
     return clusters, shaders
 
 
-def run(svbrdf_dir: str | Path, labels_path: str | Path, geometry: str | Path, out_dir: str | Path,
-        metrics_out: str | Path) -> None:
+def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threads: int = 1) -> None:
+    """Load, fit, write: a stencil model and the Kurt baseline per material cluster, the models folder and
+    stencil_fit/metrics.json."""
+    svbrdf_dir = inputs.svbrdf
     model = SVBRDF.load(svbrdf_dir)
     if model.representatives is None:
         raise InputError(svbrdf_dir, "the SVBRDF lists no representatives (material clusters)")
     reps = np.asarray(model.representatives, np.intp)
-    labels = np.load(labels_path)
+    labels = np.load(inputs.labels)
     members = np.bincount(labels[labels >= 0], minlength=len(reps))
-    truth = RectifiedCapture.load(geometry).truth()
+    truth = RectifiedCapture.load(inputs.geometry).truth()
     truth_axes = None if truth is None else true_axes_deg(truth.alpha_u[reps], truth.alpha_v[reps],
                                                           truth.phi_frame[reps])
     clusters, shaders = fit_clusters(model, reps, members, truth_axes, None if truth is None else truth.take(reps))
-    with atomic_dir(out_dir) as tmp:
+    with atomic_dir(outputs.models) as tmp:
         (tmp / "shaders").mkdir(exist_ok=True)
         for k, shader in enumerate(shaders):
             (tmp / "shaders" / f"cluster_{k:03d}.brdf").write_text(shader)
         write_json(tmp / "stencil.json", {"svbrdf": str(svbrdf_dir), "clusters": clusters})
     metrics = cluster_metrics(clusters, truth_axes is not None)
     log.info("stencil fit: %s", {k: v for k, v in metrics.items() if not isinstance(v, dict)})
-    write_json(metrics_out, metrics)
+    write_json(outputs.metrics, metrics)
 
 
 def _median(values):

@@ -14,6 +14,7 @@ from __future__ import annotations
 import copy
 import csv
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -25,7 +26,8 @@ from ..metrics import finite_or_none, frame_psnr, image_scores, relative_l2
 from ..predict import FrameRenderer, load_model, predict
 from ..render import radiance
 from ..scene import Scene
-from ..virtual_rig import VirtualRig, capture as virtual_capture
+from ..virtual_rig import VirtualRig
+from .common import RuleFiles, StageSettings
 
 log = logging.getLogger(__name__)
 
@@ -48,6 +50,37 @@ NORMALISATION = ("over the sample's pixels (every sub-pixel on the sample), line
 MAX_FRAME_PSNR_DB = 100.0
 
 
+@dataclass(frozen=True)
+class Inputs(RuleFiles):
+    """Rule ``validate``'s inputs: the fitted SVBRDF folder, the held-out captures (one folder per view of
+    ``Settings.views``, in that order), the Ward baseline's folder (None: ours alone), params' metrics (a
+    dependency: the fit is done), the held-out truth's rig description (its ``supersample`` renders the truth's
+    diffuse term as the truth was rendered; None: 1)."""
+    svbrdf: Path
+    heldout: list[Path]
+    ward: Path | None = None
+    params_metrics: Path | None = None
+    rig: Path | None = None
+
+
+@dataclass(frozen=True)
+class Outputs(RuleFiles):
+    """Rule ``validate``'s outputs: the scores, the side-by-side images' folder and the predictions' folder."""
+    metrics: Path
+    images: Path
+    predictions: Path
+
+
+@dataclass(frozen=True)
+class Settings(StageSettings):
+    """The stage's knobs: the rule's params (``images_per_view`` is config ``validate``'s; ``views`` its views'
+    names; the benchmarks are files, read when the job runs)."""
+    views: tuple = ("paper", "theta30")   # the held-out views' names, in the order of ``Inputs.heldout``
+    fit_benchmarks: tuple = ()            # the fitting stages' Snakemake benchmark files (missing ones: no time)
+    ward_benchmark: str | None = None     # the Ward baseline's benchmark file
+    images_per_view: int = 2              # side-by-side images of each view's brightest frames
+
+
 def heldout_rig(rig: VirtualRig, theta_deg: float, phi_deg: float, led_every: int, position_every: int) -> VirtualRig:
     """The sample's rig with the camera moved to (theta, phi) and a subset of its lights.
 
@@ -64,15 +97,6 @@ def heldout_rig(rig: VirtualRig, theta_deg: float, phi_deg: float, led_every: in
     desc["carriage"]["step"] = float(desc["carriage"]["step"] * position_every)
     desc["name"] = f"{desc['name']}-heldout-theta{theta_deg:g}-phi{phi_deg:+g}"
     return VirtualRig(desc)
-
-
-def heldout_capture(scene: str | Path, rig: str | Path, out_dir: str | Path, theta_deg: float, phi_deg: float,
-                    led_every: int = 4, position_every: int = 4, seed: int = 0) -> None:
-    """Render a held-out capture (noise-free; its truth radiance is what predictions are scored against)."""
-    held = heldout_rig(VirtualRig.load(rig), theta_deg, phi_deg, led_every, position_every)
-    log.info("held-out view theta %.1f deg, phi %+.1f deg (relative), %d lights", theta_deg, phi_deg,
-             len(held.scan()))
-    virtual_capture(scene, held, out_dir, seed=seed, noise=False)
 
 
 def _benchmark_seconds(path: str | Path) -> float | None:
@@ -209,67 +233,12 @@ def _supersample(rig: str | Path | None) -> int:
     return int(read_yaml(rig).get("supersample", 1))
 
 
-def run(svbrdf: str | Path, ward: str | Path | None, heldout: dict[str, str | Path], out_dir: str | Path,
-        metrics_out: str | Path, images_out: str | Path, fit_benchmarks: list[str | Path],
-        ward_benchmark: str | Path | None, images_per_view: int = 2, rig: str | Path | None = None) -> None:
-    """Predict every held-out view with both models, score them, write metrics.json and the images.
-
-    ``rig``: the sample's rig description (its ``supersample`` renders the
-    truth's diffuse term as the truth was rendered; default 1).
-    """
-    out_dir, images_out = Path(out_dir), Path(images_out)
-    images_out.mkdir(parents=True, exist_ok=True)
-    per_view: dict[str, Any] = {}
-    for view, folder in heldout.items():
-        m = manifest_io.load(Path(folder) / "manifest.json", check_files=False)
-        truth = np.stack([read_rgb(f["truth"]["radiance"]) for f in m["frames"]]).astype(float)
-        mask = FrameRenderer(load_model(svbrdf), manifest_io.camera(m)).sample_mask
-        predictions = {}
-        for name, model in (("ours", svbrdf), ("ward", ward)):
-            if model is None:
-                continue
-            target = out_dir / view / name
-            predicted = predict(model, Path(folder) / "manifest.json", target, progress=False)
-            predictions[name] = np.stack([read_rgb(target / f["exposures"][0]["file"])
-                                          for f in predicted["frames"]]).astype(float)
-        diffuse, specular_mask, region, names = None, None, None, []
-        if manifest_io.has_truth(m):
-            scene = Scene.load(m["truth"]["scene"])
-            diffuse, analytic, region = diffuse_truth(scene, *true_rig(m), _supersample(rig))
-            specular_mask = mask & analytic
-            names = [r["name"] for r in scene.regions]
-        ours = image_scores(truth, predictions["ours"], mask)
-        record = {"frames": len(m["frames"]), "sample_pixels": int(mask.sum()),
-                  "camera_view_point": manifest_io.camera(m).view_point.tolist(),
-                  "heldout_psnr_db": ours["psnr_db"], "heldout_rmse": ours["rmse"],
-                  "heldout_rmse_normalised": ours["rmse_normalised"], "heldout_ssim": ours["ssim"],
-                  "peak_radiance": ours["peak"],
-                  "specular_pixels": None if specular_mask is None else int(specular_mask.sum())}
-        record.update(trusted_scores(truth, predictions["ours"], mask, diffuse, specular_mask))
-        if region is not None:
-            record["heldout_rel_l2_regions"] = region_scores(truth, predictions["ours"], mask, region, names)
-        if "ward" in predictions:
-            base = image_scores(truth, predictions["ward"], mask)
-            record.update({"baseline_ward_psnr_db": base["psnr_db"], "baseline_ward_rmse": base["rmse"],
-                           "baseline_ward_ssim": base["ssim"]})
-            record.update({"baseline_ward_" + k[len("heldout_"):]: v for k, v in
-                           trusted_scores(truth, predictions["ward"], mask, diffuse, specular_mask).items()})
-            if region is not None:
-                record["baseline_ward_rel_l2_regions"] = region_scores(truth, predictions["ward"], mask, region,
-                                                                       names)
-        per_view[view] = record
-        log.info("%s: ours %.2f dB (SSIM %.4f, rel L2 %s, specular rel L2 %s, frame PSNR median %s / worst %s dB)%s",
-                 view, ours["psnr_db"], ours["ssim"], _fmt(record["heldout_rel_l2"]),
-                 _fmt(record["heldout_specular_rel_l2"]), _fmt(record["heldout_frame_psnr_median_db"]),
-                 _fmt(record["heldout_frame_psnr_worst_db"]),
-                 f", Ward {record['baseline_ward_psnr_db']:.2f} dB (rel L2 {_fmt(record['baseline_ward_rel_l2'])}, "
-                 f"specular {_fmt(record['baseline_ward_specular_rel_l2'])})" if "ward" in predictions else "")
-        brightest = np.argsort(truth.sum(axis=(1, 2, 3)))[::-1][:images_per_view]
-        for q in brightest:
-            peak = float(truth[q][mask].max()) if mask.any() else 1.0
-            ward_img = predictions["ward"][q] if "ward" in predictions else None
-            _to_png(images_out / f"{view}_frame{q:04d}.png",
-                    side_by_side(truth[q], predictions["ours"][q], ward_img, peak))
+def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threads: int = 1) -> None:
+    """Predict every held-out view with both models and score them (:func:`view_scores`), write metrics.json;
+    the images as each view is scored."""
+    Path(outputs.images).mkdir(parents=True, exist_ok=True)
+    per_view: dict[str, Any] = {view: view_scores(inputs, outputs, settings, view, folder)
+                                for view, folder in zip(settings.views, inputs.heldout)}
 
     def mean(key):
         values = [v[key] for v in per_view.values() if v.get(key) is not None]
@@ -278,7 +247,7 @@ def run(svbrdf: str | Path, ward: str | Path | None, heldout: dict[str, str | Pa
     trusted = {prefix + key: mean(prefix + key) for prefix in ("heldout_", "baseline_ward_")
                for key in ("rel_l2", "specular_rel_l2", "frame_psnr_median_db", "frame_psnr_worst_db")}
 
-    fit_times = {Path(b).stem: _benchmark_seconds(b) for b in fit_benchmarks}
+    fit_times = {Path(b).stem: _benchmark_seconds(b) for b in settings.fit_benchmarks}
     metrics = {"normalisation": NORMALISATION, "views": per_view,
                "heldout_psnr_db": mean("heldout_psnr_db"), "heldout_rmse": mean("heldout_rmse"),
                "heldout_ssim": mean("heldout_ssim"), "baseline_ward_psnr_db": mean("baseline_ward_psnr_db"),
@@ -288,7 +257,64 @@ def run(svbrdf: str | Path, ward: str | Path | None, heldout: dict[str, str | Pa
                "fit_seconds": {"ours": (sum(v for v in fit_times.values() if v is not None)
                                         if any(v is not None for v in fit_times.values()) else None),
                                "ours_stages": fit_times,
-                               "baseline_ward": None if ward_benchmark is None else _benchmark_seconds(ward_benchmark)},
+                               "baseline_ward": None if settings.ward_benchmark is None
+                                                 else _benchmark_seconds(settings.ward_benchmark)},
                "images": "validate/images/VIEW_frameNNNN.png: truth | ours | Ward | 4 x |ours - truth|, "
                          "scaled by the frame's peak, gamma 2.2"}
-    write_json(metrics_out, metrics)
+    write_json(outputs.metrics, metrics)
+
+
+def view_scores(inputs: Inputs, outputs: Outputs, settings: Settings, view: str, folder: str | Path) -> dict[str, Any]:
+    """One held-out view (the capture in ``folder``): predicted by both models into ``outputs.predictions``,
+    scored against its truth; its brightest frames' side-by-side images written. Returns the view's record."""
+    svbrdf, ward, rig = inputs.svbrdf, inputs.ward, inputs.rig
+    out_dir, images_out = Path(outputs.predictions), Path(outputs.images)
+    m = manifest_io.load(Path(folder) / "manifest.json", check_files=False)
+    truth = np.stack([read_rgb(f["truth"]["radiance"]) for f in m["frames"]]).astype(float)
+    mask = FrameRenderer(load_model(svbrdf), manifest_io.camera(m)).sample_mask
+    predictions = {}
+    for name, model in (("ours", svbrdf), ("ward", ward)):
+        if model is None:
+            continue
+        target = out_dir / view / name
+        predicted = predict(model, Path(folder) / "manifest.json", target, progress=False)
+        predictions[name] = np.stack([read_rgb(target / f["exposures"][0]["file"])
+                                      for f in predicted["frames"]]).astype(float)
+    diffuse, specular_mask, region, names = None, None, None, []
+    if manifest_io.has_truth(m):
+        scene = Scene.load(m["truth"]["scene"])
+        diffuse, analytic, region = diffuse_truth(scene, *true_rig(m), _supersample(rig))
+        specular_mask = mask & analytic
+        names = [r["name"] for r in scene.regions]
+    ours = image_scores(truth, predictions["ours"], mask)
+    record = {"frames": len(m["frames"]), "sample_pixels": int(mask.sum()),
+              "camera_view_point": manifest_io.camera(m).view_point.tolist(),
+              "heldout_psnr_db": ours["psnr_db"], "heldout_rmse": ours["rmse"],
+              "heldout_rmse_normalised": ours["rmse_normalised"], "heldout_ssim": ours["ssim"],
+              "peak_radiance": ours["peak"],
+              "specular_pixels": None if specular_mask is None else int(specular_mask.sum())}
+    record.update(trusted_scores(truth, predictions["ours"], mask, diffuse, specular_mask))
+    if region is not None:
+        record["heldout_rel_l2_regions"] = region_scores(truth, predictions["ours"], mask, region, names)
+    if "ward" in predictions:
+        base = image_scores(truth, predictions["ward"], mask)
+        record.update({"baseline_ward_psnr_db": base["psnr_db"], "baseline_ward_rmse": base["rmse"],
+                       "baseline_ward_ssim": base["ssim"]})
+        record.update({"baseline_ward_" + k[len("heldout_"):]: v for k, v in
+                       trusted_scores(truth, predictions["ward"], mask, diffuse, specular_mask).items()})
+        if region is not None:
+            record["baseline_ward_rel_l2_regions"] = region_scores(truth, predictions["ward"], mask, region,
+                                                                   names)
+    log.info("%s: ours %.2f dB (SSIM %.4f, rel L2 %s, specular rel L2 %s, frame PSNR median %s / worst %s dB)%s",
+             view, ours["psnr_db"], ours["ssim"], _fmt(record["heldout_rel_l2"]),
+             _fmt(record["heldout_specular_rel_l2"]), _fmt(record["heldout_frame_psnr_median_db"]),
+             _fmt(record["heldout_frame_psnr_worst_db"]),
+             f", Ward {record['baseline_ward_psnr_db']:.2f} dB (rel L2 {_fmt(record['baseline_ward_rel_l2'])}, "
+             f"specular {_fmt(record['baseline_ward_specular_rel_l2'])})" if "ward" in predictions else "")
+    brightest = np.argsort(truth.sum(axis=(1, 2, 3)))[::-1][:settings.images_per_view]
+    for q in brightest:
+        peak = float(truth[q][mask].max()) if mask.any() else 1.0
+        ward_img = predictions["ward"][q] if "ward" in predictions else None
+        _to_png(images_out / f"{view}_frame{q:04d}.png",
+                side_by_side(truth[q], predictions["ours"][q], ward_img, peak))
+    return record
