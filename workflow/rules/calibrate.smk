@@ -5,7 +5,26 @@
 # A virtual rig renders its targets (rule calibration_targets); for a real rig, photograph them into
 # results/calibration/{rig}/targets/ in the layout of facetsynth.calibration (its docstring).
 
+from dataclasses import fields as _fields
+
 from facetsynth.stages.calibrate import CalibrateSettings, TargetSettings
+from facetsynth.virtual_rig import VirtualRig
+
+
+def calibration_params(settings):
+    """A settings dataclass's fields from config section 'calibration', its defaults for keys left out."""
+    return {f.name: (config.get("calibration") or {}).get(f.name, f.default) for f in _fields(settings)}
+
+
+def calibration_rig(wildcards):
+    """The virtual rig description the targets are rendered from; none for a real rig (its targets are photos:
+    the job then says where to put them)."""
+    path = f"rig/descriptions/{wildcards.rig}.yaml"
+    try:
+        VirtualRig.load(path)
+    except Exception:
+        return []
+    return [path]
 
 
 rule calibration_targets:

@@ -3,14 +3,12 @@
 
 import csv
 import json
-from dataclasses import fields
 from pathlib import Path
 
 import yaml
 from snakemake.exceptions import WorkflowError
 from snakemake.utils import validate
 
-from facetsynth.virtual_rig import VirtualRig
 
 
 def scalars(value):
@@ -216,21 +214,3 @@ def rotation_inputs(wildcards):
     rotations = rotations_of(wildcards.sample)
     return {"rotation_geometry": [f"results/{r}/separate/geometry.json" for r in rotations],
             "rotation_ndf": [f"results/{r}/partial_ndf/ndf" for r in rotations]}
-
-
-
-def calibration_params(settings):
-    """A settings dataclass's fields from config section 'calibration', its defaults for keys left out."""
-    return {f.name: (config.get("calibration") or {}).get(f.name, f.default) for f in fields(settings)}
-
-
-
-def calibration_rig(wildcards):
-    """The virtual rig description the targets are rendered from; none for a real rig (its targets are photos:
-    the job then says where to put them)."""
-    path = f"rig/descriptions/{wildcards.rig}.yaml"
-    try:
-        VirtualRig.load(path)
-    except Exception:
-        return []
-    return [path]
