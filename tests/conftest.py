@@ -13,6 +13,24 @@ RGL_FILES = sorted(RGL_DIR.glob("*.bsdf"))
 assert len(RGL_FILES) == 7, f"{RGL_DIR}: expected the seven RGL .bsdf files"
 
 
+def hdr_outputs(folder: Path):
+    """hdr's outputs in ``folder`` as the workflow lays them out: frames/, manifest.json, metrics.json."""
+    from facetsynth.stages import hdr
+    return hdr.Outputs(frames=folder / "frames", manifest=folder / "manifest.json", metrics=folder / "metrics.json")
+
+
+def rectify_into(manifest: Path, folder: Path, resolution: int | str) -> dict:
+    """rectify of the hdr ``manifest`` into ``folder`` (frames/, geometry.json, metrics.json) at ``resolution``;
+    returns its metrics."""
+    import json
+
+    from facetsynth.stages import rectify
+    rectify.run(rectify.Inputs(manifest=manifest),
+                rectify.Outputs(frames=folder / "frames", geometry=folder / "geometry.json",
+                                metrics=folder / "metrics.json"), rectify.Settings(resolution=resolution))
+    return json.loads((folder / "metrics.json").read_text())
+
+
 @pytest.fixture(scope="session")
 def repo() -> Path:
     return REPO

@@ -22,6 +22,8 @@ from pathlib import Path
 
 import pytest
 
+from conftest import hdr_outputs, rectify_into
+
 from facetsynth.fileio import read_exr, write_exr
 
 # (frame, exposure, pixels made negative, channels): 10 pixels x 3 channels + 5 pixels x 1 channel.
@@ -90,12 +92,6 @@ def assert_same_files(got: Path, expected: Path) -> None:
         assert (got / name).read_bytes() == (expected / name).read_bytes(), name
 
 
-def hdr_paths(root: Path):
-    from facetsynth.stages import hdr
-    return hdr.Outputs(frames=root / "hdr/frames", manifest=root / "hdr/manifest.json",
-                       metrics=root / "hdr/metrics.json")
-
-
 def pndf_paths(root: Path) -> dict:
     return {"ndf_out": root / "partial_ndf/ndf", "metrics_out": root / "partial_ndf/metrics.json"}
 
@@ -105,7 +101,7 @@ def work(tmp_path_factory, repo):
     """The capture with negative values, and an uninterrupted run of every stage up to ``partial_ndf``
     in ``ref``: its hdr and partial_ndf outputs are the references, its resample outputs the inputs of
     the partial_ndf runs."""
-    from facetsynth.stages import hdr, partial_ndf, rectify, resample, separate
+    from facetsynth.stages import hdr, partial_ndf, resample, separate
     from facetsynth.virtual_rig import VirtualRig, capture
     root = tmp_path_factory.mktemp("crash")
     capture(repo / "resources/scenes/demo.yaml", VirtualRig.load(repo / "tests/data/rig-tiny.yaml"),
@@ -117,10 +113,8 @@ def work(tmp_path_factory, repo):
         rgb[0, :pixels, :channels] = -0.003          # read noise below a black level
         write_exr(file, {"RGB": rgb}, {"exposure_time": header["exposure_time"]}, precision="float16")
     ref = root / "ref"
-    hdr.run(hdr.Inputs(capture=root / "capture"), hdr_paths(ref))
-    rectify.run(rectify.Inputs(manifest=ref / "hdr/manifest.json"),
-                rectify.Outputs(frames=ref / "rectify/frames", geometry=ref / "rectify/geometry.json",
-                                metrics=ref / "rectify/metrics.json"), rectify.Settings(resolution=16))
+    hdr.run(hdr.Inputs(capture=root / "capture"), hdr_outputs(ref / "hdr"))
+    rectify_into(ref / "hdr/manifest.json", ref / "rectify", 16)
     inputs = {"geometry": ref / "rectify/geometry.json", "slice_path": ref / "resample/slice",
               "grid_path": ref / "resample/grid.json"}
     separate.run(separate.Inputs(geometry=inputs["geometry"]),
@@ -142,7 +136,7 @@ def test_hdr_counts_negative_exposure_values_and_warns(work, tmp_path, caplog):
     count goes to the metrics and a WARNING names it and the first file."""
     from facetsynth.stages import hdr
     with caplog.at_level(logging.WARNING, logger="facetsynth.stages.hdr"):
-        hdr.run(hdr.Inputs(capture=work["root"] / "capture"), hdr_paths(tmp_path))
+        hdr.run(hdr.Inputs(capture=work["root"] / "capture"), hdr_outputs(tmp_path / "hdr"))
     metrics = json.loads((tmp_path / "hdr/metrics.json").read_text())
     assert metrics["negative_values"] == NEGATIVE_COUNT
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
@@ -158,7 +152,7 @@ def test_hdr_without_negative_values_reports_zero_and_does_not_warn(tmp_path, re
     capture(repo / "resources/scenes/demo.yaml", VirtualRig.load(repo / "tests/data/rig-tiny.yaml"),
             tmp_path / "capture", seed=2, noise=True)
     with caplog.at_level(logging.WARNING, logger="facetsynth.stages.hdr"):
-        hdr.run(hdr.Inputs(capture=tmp_path / "capture"), hdr_paths(tmp_path))
+        hdr.run(hdr.Inputs(capture=tmp_path / "capture"), hdr_outputs(tmp_path / "hdr"))
     assert json.loads((tmp_path / "hdr/metrics.json").read_text())["negative_values"] == 0
     assert not [r for r in caplog.records if r.levelno == logging.WARNING]
 
@@ -183,7 +177,7 @@ HDR_KILLS = {
 def test_hdr_rerun_after_sigkill_is_bitwise_an_uninterrupted_run(work, tmp_path, kill):
     from facetsynth.stages import hdr
     root = work["root"] / tmp_path.name       # beside ref: the manifest's relative paths to the capture match
-    kwargs = {"inputs": hdr.Inputs(capture=work["root"] / "capture"), "outputs": hdr_paths(root)}
+    kwargs = {"inputs": hdr.Inputs(capture=work["root"] / "capture"), "outputs": hdr_outputs(root / "hdr")}
     run_killed("facetsynth.stages.hdr", "run", kwargs, root, **HDR_KILLS[kill])
     hdr.run(**kwargs)
     assert temporaries(root) == []

@@ -9,9 +9,11 @@ import shutil
 import numpy as np
 import pytest
 
+from conftest import hdr_outputs, rectify_into
+
 from facetsynth.errors import InputError
 from facetsynth.fileio import read_rgb, write_exr
-from facetsynth.stages import hdr, rectify, separate
+from facetsynth.stages import hdr, separate
 from facetsynth.virtual_rig import VirtualRig, capture
 
 
@@ -38,8 +40,7 @@ def variant(card, folder, frames=None, darken=()):
 
 def run_hdr(folder):
     out = folder.parent / "hdr"
-    hdr.run(hdr.Inputs(capture=folder),
-            hdr.Outputs(frames=out / "frames", manifest=out / "manifest.json", metrics=out / "metrics.json"))
+    hdr.run(hdr.Inputs(capture=folder), hdr_outputs(out))
     return json.loads((out / "metrics.json").read_text())
 
 
@@ -91,9 +92,7 @@ def test_a_noisy_matte_sample_is_flagged_diffuse_only(repo, tmp_path):
         root = tmp_path / name
         capture(path, rig, root / "capture", seed=2, noise=True)
         run_hdr(root / "capture")
-        rectify.run(rectify.Inputs(manifest=root / "hdr/manifest.json"),
-                    rectify.Outputs(frames=root / "rectify/frames", geometry=root / "rectify/geometry.json",
-                                    metrics=root / "rectify/metrics.json"), rectify.Settings(resolution=32))
+        rectify_into(root / "hdr/manifest.json", root / "rectify", 32)
         separate.run(separate.Inputs(geometry=root / "rectify/geometry.json"),
                      separate.Outputs(kd=root / "kd.exr", specular=root / "specular.npy", valid=root / "valid.npy",
                                       metrics=root / "separate.json"), separate.Settings(heldout_every=0))

@@ -101,6 +101,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import hdr_outputs, rectify_into
+
 from facetsynth import cluster, microfacet, params, tables
 from facetsynth import partial_ndf as pndf
 from facetsynth import synthesis as syn
@@ -237,19 +239,15 @@ def extreme_run(tmp_path_factory):
     lobe; alpha 1 with eta 1.05; an anisotropic glossy one), noise-free, captured by the virtual rig on
     the sparse test rig (340 lights; camera 120 x 80), merged, rectified to 16 x 16 cells, then every
     per-point stage on a 16 x 64 direction grid."""
-    from facetsynth.stages import hdr, rectify
+    from facetsynth.stages import hdr
     from facetsynth.virtual_rig import VirtualRig, capture
     root = tmp_path_factory.mktemp("extremes")
     (root / "scene.yaml").write_text(EXTREME_SCENE)
     rig = (REPO / "tests/data/rig-sparse.yaml").read_text().replace("width: 240", "width: 120")
     (root / "rig.yaml").write_text(rig.replace("height_px: 160", "height_px: 80"))   # a quarter of the pixels
     capture(root / "scene.yaml", VirtualRig.load(root / "rig.yaml"), root / "capture", seed=1, noise=False)
-    hdr.run(hdr.Inputs(capture=root / "capture"),
-            hdr.Outputs(frames=root / "hdr/frames", manifest=root / "hdr/manifest.json",
-                        metrics=root / "hdr/metrics.json"))
-    rectify.run(rectify.Inputs(manifest=root / "hdr/manifest.json"),
-                rectify.Outputs(frames=root / "rectify/frames", geometry=root / "rectify/geometry.json",
-                                metrics=root / "rectify/metrics.json"), rectify.Settings(resolution=16))
+    hdr.run(hdr.Inputs(capture=root / "capture"), hdr_outputs(root / "hdr"))
+    rectify_into(root / "hdr/manifest.json", root / "rectify", 16)
     files = run_per_point_stages(root, root / "rectify/geometry.json", n_theta=16)
     files["root"] = root
     return files

@@ -5,6 +5,8 @@ import json
 import numpy as np
 import pytest
 
+from conftest import hdr_outputs
+
 from facetsynth.hdr import SensorModel, merge_exposures
 from facetsynth.render import expose
 
@@ -84,9 +86,7 @@ def test_hdr_stage_on_two_threads_writes_what_one_thread_writes(tmp_path, repo):
     out = {}
     for threads in (1, 2):
         d = tmp_path / f"hdr{threads}"
-        hdr.run(hdr.Inputs(capture=tmp_path / "capture"),
-                hdr.Outputs(frames=d / "frames", manifest=d / "manifest.json", metrics=d / "metrics.json"),
-                threads=threads)
+        hdr.run(hdr.Inputs(capture=tmp_path / "capture"), hdr_outputs(d), threads=threads)
         out[threads] = d
     for q in (0, 17, 29):
         one, two = read_frame(out[1] / f"frames/{q:04d}.exr"), read_frame(out[2] / f"frames/{q:04d}.exr")

@@ -10,6 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import hdr_outputs, rectify_into
+
 from facetsynth import selfcheck, tables
 from facetsynth.fileio import read_rgb, write_exr
 from facetsynth.stages.common import RectifiedCapture
@@ -165,22 +167,15 @@ def test_noise_free_demo_predicts_held_out_views_and_fits_stencils(demo_run):
 
 def test_noisy_capture_stays_within_three_times_the_targets(repo, tmp_path):
     """Default sensor noise on the tiny rig: the figures stay within 3x of the noise-free targets."""
-    from facetsynth.stages import hdr, rectify
+    from facetsynth.stages import hdr
     capture(repo / "resources/scenes/demo.yaml", VirtualRig.load(repo / "tests/data/rig-tiny.yaml"),
             tmp_path / "capture", seed=1, noise=True)
-    hdr.run(hdr.Inputs(capture=tmp_path / "capture"),
-            hdr.Outputs(frames=tmp_path / "hdr/frames", manifest=tmp_path / "hdr/manifest.json",
-                        metrics=tmp_path / "hdr/metrics.json"))
-    rectify.run(rectify.Inputs(manifest=tmp_path / "hdr/manifest.json"),
-                rectify.Outputs(frames=tmp_path / "rect/frames", geometry=tmp_path / "rect/geometry.json",
-                                metrics=tmp_path / "rect/metrics.json"), rectify.Settings(resolution=48))
+    hdr.run(hdr.Inputs(capture=tmp_path / "capture"), hdr_outputs(tmp_path / "hdr"))
+    rect = rectify_into(tmp_path / "hdr/manifest.json", tmp_path / "rect", 48)
     assert json.loads((tmp_path / "hdr/metrics.json").read_text())["median_rel_error"] <= 0.03
-    assert json.loads((tmp_path / "rect/metrics.json").read_text())["registration_error_px"] <= 1.5
+    assert rect["registration_error_px"] <= 1.5
     # resolution auto (issue 14): as many cells as pixels see the sample; the tiny rig's 120 x 80 camera: 84
-    rectify.run(rectify.Inputs(manifest=tmp_path / "hdr/manifest.json"),
-                rectify.Outputs(frames=tmp_path / "auto/frames", geometry=tmp_path / "auto/geometry.json",
-                                metrics=tmp_path / "auto/metrics.json"), rectify.Settings(resolution="auto"))
-    auto = json.loads((tmp_path / "auto/metrics.json").read_text())
+    auto = rectify_into(tmp_path / "hdr/manifest.json", tmp_path / "auto", "auto")
     assert (auto["cols"], auto["rows"], auto["resolution_rule"]) == (84, 84, "auto")
     assert auto["registration_error_px"] <= 1.5 * 84 / 48           # the same error in metres, finer cells
 
