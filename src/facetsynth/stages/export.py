@@ -19,11 +19,11 @@ import numpy as np
 
 from .. import manifest as manifest_io
 from ..export.gltf import GLTF_NAME, export_gltf, read_gltf
-from ..fileio import read_json, read_rgb, read_yaml, write_json
+from ..fileio import read_json, read_rgb, write_json
 from ..predict import FrameRenderer
 from ..scene import Scene
 from .common import RuleFiles, StageSettings
-from .validate import diffuse_truth, true_rig, trusted_scores
+from .validate import diffuse_truth, supersample, true_rig, trusted_scores, view_mean
 
 log = logging.getLogger(__name__)
 
@@ -96,11 +96,11 @@ def heldout_scores(inputs: Inputs, gltf: Path, views) -> dict[str, Any]:
     """The portable material read back from ``gltf`` on every held-out view (``inputs.heldout``, named by
     ``views``) beside the full SVBRDF's (``inputs.validate_metrics``): per view and their means."""
     full = read_json(inputs.validate_metrics)["views"] if inputs.validate_metrics else {}
-    supersample = int(read_yaml(inputs.rig).get("supersample", 1)) if inputs.rig else 1
+    sub_pixels = supersample(inputs.rig)
     portable = read_gltf(gltf)
     out: dict[str, Any] = {"views": {}}
     for view, folder in zip(views, inputs.heldout):
-        scores = score_view(portable, folder, supersample)
+        scores = score_view(portable, folder, sub_pixels)
         record = {"portable_" + k[len("heldout_"):]: v for k, v in scores.items()}
         for key in ("rel_l2", "specular_rel_l2"):
             ours = full.get(view, {}).get("heldout_" + key)
@@ -110,12 +110,7 @@ def heldout_scores(inputs: Inputs, gltf: Path, views) -> dict[str, Any]:
         out["views"][view] = record
         log.info("%s: held-out rel L2 portable %.4f, full %s", view, record["portable_rel_l2"],
                  record["full_rel_l2"])
-
-    def mean(key):
-        values = [v[key] for v in out["views"].values() if v.get(key) is not None]
-        return float(np.mean(values)) if values else None
-
     for key in ("portable_rel_l2", "full_rel_l2", "loss_rel_l2", "portable_specular_rel_l2",
                 "full_specular_rel_l2", "loss_specular_rel_l2"):
-        out["heldout_" + key] = mean(key)
+        out["heldout_" + key] = view_mean(out["views"], key)
     return out

@@ -226,11 +226,17 @@ def trusted_scores(truth: np.ndarray, prediction: np.ndarray, mask: np.ndarray,
     return out
 
 
-def _supersample(rig: str | Path | None) -> int:
-    """The rig description's sub-pixel count per axis (the held-out truth was rendered with it)."""
+def supersample(rig: str | Path | None) -> int:
+    """The rig description's sub-pixel count per axis (the held-out truth was rendered with it); 1 without one."""
     if rig is None:
         return 1
     return int(read_yaml(rig).get("supersample", 1))
+
+
+def view_mean(per_view: dict[str, dict], key: str) -> float | None:
+    """The mean of ``key`` over the views' records that have it (None where none has)."""
+    values = [v[key] for v in per_view.values() if v.get(key) is not None]
+    return float(np.mean(values)) if values else None
 
 
 def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threads: int = 1) -> None:
@@ -241,8 +247,7 @@ def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threa
                                 for view, folder in zip(settings.views, inputs.heldout)}
 
     def mean(key):
-        values = [v[key] for v in per_view.values() if v.get(key) is not None]
-        return float(np.mean(values)) if values else None
+        return view_mean(per_view, key)
 
     trusted = {prefix + key: mean(prefix + key) for prefix in ("heldout_", "baseline_ward_")
                for key in ("rel_l2", "specular_rel_l2", "frame_psnr_median_db", "frame_psnr_worst_db")}
@@ -283,7 +288,7 @@ def view_scores(inputs: Inputs, outputs: Outputs, settings: Settings, view: str,
     diffuse, specular_mask, region, names = None, None, None, []
     if manifest_io.has_truth(m):
         scene = Scene.load(m["truth"]["scene"])
-        diffuse, analytic, region = diffuse_truth(scene, *true_rig(m), _supersample(rig))
+        diffuse, analytic, region = diffuse_truth(scene, *true_rig(m), supersample(rig))
         specular_mask = mask & analytic
         names = [r["name"] for r in scene.regions]
     ours = image_scores(truth, predictions["ours"], mask)
