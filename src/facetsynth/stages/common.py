@@ -149,6 +149,21 @@ def part_records(records: list) -> tuple[np.ndarray, dict]:
     return order, joined
 
 
+def analytic_points(capture: RectifiedCapture, truth: MaterialMaps) -> np.ndarray:
+    """(P,) bool: the visible points whose truth is eq. 6 (on a region, ``MaterialMaps.analytic``): the only
+    points where a true kd, ks, eta or NDF exists to score a fit against (a measured or conductor truth's are
+    placeholders)."""
+    return capture.visible & (truth.region >= 0) & np.asarray(truth.analytic, bool).reshape(capture.visible.shape)
+
+
+def median_rel_error(fitted: np.ndarray, true: np.ndarray, on: np.ndarray) -> float | None:
+    """The median over the points ``on`` of |mean(fitted) - mean(true)| / mean(true), channel means of (P, 3)
+    maps, where the truth's mean is > 0; None where no point is left."""
+    t = np.asarray(true, float).reshape(-1, 3).mean(axis=1)
+    sel = on & (t > 0)
+    return float(np.median(np.abs(np.asarray(fitted).mean(axis=1)[sel] - t[sel]) / t[sel])) if sel.any() else None
+
+
 def flag_degenerate(metrics: dict, reason: str, log: logging.Logger) -> None:
     """A condition that still allows a weaker model (issue 15; docs/decisions.md, "Degenerate captures"): a
     WARNING in the stage's log and ``degenerate`` in its metrics (several reasons joined by "; "), never a

@@ -30,7 +30,7 @@ from ..microfacet import fresnel, half_vector
 from ..scene import MaterialMaps, Scene
 from ..svbrdf import SVBRDF
 from ..synthesis import SUPPORT
-from .common import RectifiedCapture, RuleFiles, StageSettings, tiles
+from .common import RectifiedCapture, RuleFiles, StageSettings, analytic_points, median_rel_error, tiles
 
 log = logging.getLogger(__name__)
 
@@ -431,20 +431,14 @@ def truth_scores(model: SVBRDF, capture: RectifiedCapture) -> dict:
     truth = capture.truth()
     if truth is None:
         return {}
-    on = capture.visible & (truth.region >= 0)
-    analytic = getattr(truth, "analytic", None)
-    if analytic is not None:
-        on &= np.asarray(analytic, bool).reshape(on.shape)
+    on = analytic_points(capture, truth)
     out = {}
     err = np.abs(model.eta - truth.eta)
     out["eta_abs_error_median"] = float(np.median(err[on])) if on.any() else None
     sel = on & model.eta_fitted
     out["eta_abs_error_median_fitted"] = float(np.median(err[sel])) if sel.any() else None
     out["eta_within_0.1_fraction_fitted"] = float((err[sel] <= 0.1).mean()) if sel.any() else None
-    kt = truth.ks.mean(axis=1)
-    sel = on & (kt > 0)
-    out["ks_median_rel_error"] = float(np.median(np.abs(model.ks.mean(axis=1)[sel] - kt[sel]) / kt[sel])) \
-        if sel.any() else None
+    out["ks_median_rel_error"] = median_rel_error(model.ks, truth.ks, on)
     log.info("eta |error| median %s (fitted points: %s), ks median rel error %s", out["eta_abs_error_median"],
              out["eta_abs_error_median_fitted"], out["ks_median_rel_error"])
     return {**out, **spread_scores(model, capture, truth)}

@@ -14,7 +14,7 @@ from ..fileio import atomic_path, read_json, write_json
 from ..frames import imap
 from ..grid import DirectionGrid
 from ..tables import SupportTable, join_tables, support_writer
-from .common import TILE_POINTS, RectifiedCapture, StageSettings, part_points, part_records, tiles
+from .common import TILE_POINTS, RectifiedCapture, StageSettings, analytic_points, part_points, part_records, tiles
 
 log = logging.getLogger(__name__)
 
@@ -142,7 +142,7 @@ def scored_points(capture: RectifiedCapture, truth) -> np.ndarray:
     scored = np.zeros(capture.n_points, bool)
     if truth is not None:
         scored[:: max(1, capture.n_points // METRIC_POINTS)] = True
-        scored &= capture.visible & (truth.region >= 0) & truth.analytic   # true NDF known: eq. 6 points
+        scored &= analytic_points(capture, truth)   # true NDF known: eq. 6 points
     return scored
 
 

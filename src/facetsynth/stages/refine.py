@@ -32,7 +32,8 @@ from ..params import normalise, projected_area
 from ..refine import NormalSums, best_turns, parabola_minimum, radiance_weights, solve, stretch
 
 from ..svbrdf import SVBRDF
-from .common import TILE_POINTS, RectifiedCapture, RuleFiles, StageSettings, strided, tiles
+from .common import (TILE_POINTS, RectifiedCapture, RuleFiles, StageSettings, analytic_points, median_rel_error,
+                     strided, tiles)
 from .params import spread_scores
 
 log = logging.getLogger(__name__)
@@ -394,19 +395,13 @@ def truth_scores(model: SVBRDF, capture: RectifiedCapture) -> dict:
     truth = capture.truth()
     if truth is None:
         return {}
-    on = capture.visible & (truth.region >= 0)
-    analytic = getattr(truth, "analytic", None)
-    if analytic is not None:
-        on &= np.asarray(analytic, bool).reshape(on.shape)
-    out = {}
+    on = analytic_points(capture, truth)
     f0 = np.ones(1)      # ks F(eta) at normal incidence: the specular reflectance a renderer's F0 takes (eq. 3)
     f0_fitted = model.ks * fresnel(f0, model.eta)[:, None]
     f0_true = np.asarray(truth.ks, float).reshape(-1, 3) * fresnel(f0, np.asarray(truth.eta, float).ravel())[:, None]
-    for name, fitted, true in (("kd", model.kd, truth.kd), ("ks", model.ks, truth.ks), ("ks_f0", f0_fitted, f0_true)):
-        t = np.asarray(true, float).reshape(-1, 3).mean(axis=1)
-        sel = on & (t > 0)
-        err = np.abs(fitted.mean(axis=1)[sel] - t[sel]) / t[sel]
-        out[f"{name}_median_rel_error"] = float(np.median(err)) if sel.any() else None
+    out = {f"{name}_median_rel_error": median_rel_error(fitted, true, on)
+           for name, fitted, true in (("kd", model.kd, truth.kd), ("ks", model.ks, truth.ks),
+                                      ("ks_f0", f0_fitted, f0_true))}
     return {**out, **spread_scores(model, capture, truth)}
 
 

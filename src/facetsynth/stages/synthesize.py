@@ -28,7 +28,7 @@ from ..errors import InputError
 from ..fileio import read_exr, read_json, write_json, write_npy
 from ..grid import DirectionGrid
 from ..tables import SupportTable
-from .common import RectifiedCapture, RuleFiles, StageSettings, flag_degenerate, tiles
+from .common import RectifiedCapture, RuleFiles, StageSettings, analytic_points, flag_degenerate, tiles
 
 log = logging.getLogger(__name__)
 
@@ -444,7 +444,7 @@ def scored_points(capture: RectifiedCapture, truth) -> np.ndarray:
     scored = np.zeros(capture.n_points, bool)
     visible = np.flatnonzero(capture.visible)
     scored[visible[:: max(1, visible.size // METRIC_POINTS)]] = True
-    return scored & (truth.region >= 0) & truth.analytic
+    return scored & analytic_points(capture, truth)
 
 
 def ndf_errors(table, nbr, wts, scored, truth, grid, rotation=None) -> np.ndarray:
