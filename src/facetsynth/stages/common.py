@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, fields
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
@@ -22,13 +23,17 @@ TILE_POINTS = 256  # points per tile: bounds the memory of every per-point stage
 class StageSettings:
     """Base of a stage's frozen settings dataclass: one field per key of its config section (and of the keys
     its rule takes from other sections, under their config names); the defaults are the config's
-    (tests/test_config.py checks config/config.yaml against them)."""
+    (tests/test_config.py checks config/config.yaml against them). ``MEASURED`` names the fields that are
+    no config keys (measured defaults the rule does not pass); every other field must come from the rule."""
+
+    MEASURED: ClassVar[tuple[str, ...]] = ()
 
     @classmethod
     def from_params(cls, params):
-        """From a rule's ``params`` (the config section's keys); lists become tuples (a frozen settings object);
-        a field the rule does not pass keeps its default (a stage's measured knobs that are no config keys)."""
-        return cls(**{f.name: _frozen(getattr(params, f.name)) for f in fields(cls) if hasattr(params, f.name)})
+        """From a rule's ``params`` (the config section's keys); lists become tuples (a frozen settings object).
+        A field missing from the rule raises (a user's setting would be ignored), but a ``MEASURED`` one."""
+        return cls(**{f.name: _frozen(getattr(params, f.name)) for f in fields(cls)
+                      if f.name not in cls.MEASURED or hasattr(params, f.name)})
 
 
 def _frozen(value):

@@ -49,6 +49,7 @@ class Outputs(RuleFiles):
 class Settings(StageSettings):
     """The export's knobs: measured defaults, not in the workflow's config (nothing there to trade yet); and the
     rule's ``views``, the names of the held-out views in the order of ``Inputs.heldout``."""
+    MEASURED = ("weight_quantum", "iterations", "fresnel_cos_min")
     views: tuple = ()              # rule param: the held-out views' names (config validate.views)
     weight_quantum: float = 0.01   # eq. 18 weights rounded to this before fitting each distinct mixture once
                                    # (demo: 639 mixtures for 28224 points; alphas within 0.5 % of the exact fit)
