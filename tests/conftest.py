@@ -19,6 +19,26 @@ def hdr_outputs(folder: Path):
     return hdr.Outputs(frames=folder / "frames", manifest=folder / "manifest.json", metrics=folder / "metrics.json")
 
 
+def tiny_truth_model(root: Path, repo: Path, cells: int, rings: int):
+    """test_predict's SCENE captured noise-free by the test rig (30 frames) into ``root``/capture, and the SVBRDF
+    of its truth on a ``cells`` x ``cells`` plane grid and a ``rings`` x 4 ``rings`` direction grid in
+    ``root``/svbrdf; returns the model."""
+    from facetsynth.grid import DirectionGrid
+    from facetsynth.plane import PlaneGrid
+    from facetsynth.scene import Scene
+    from facetsynth.svbrdf import tabulate_truth
+    from facetsynth.virtual_rig import VirtualRig, capture
+    from test_predict import SCENE
+    (root / "scene.yaml").write_text(SCENE)
+    capture(root / "scene.yaml", VirtualRig.load(repo / "tests/data/rig-tiny.yaml"), root / "capture", seed=1,
+            noise=False)
+    plane = PlaneGrid(0.1, 0.1, cells, cells)
+    maps = Scene.load(root / "scene.yaml").parameters(plane.points3d().reshape(-1, 3)[:, :2])
+    model = tabulate_truth(maps, DirectionGrid(rings, 4 * rings), plane)
+    model.save(root / "svbrdf")
+    return model
+
+
 def rectify_into(manifest: Path, folder: Path, resolution: int | str) -> dict:
     """rectify of the hdr ``manifest`` into ``folder`` (frames/, geometry.json, metrics.json) at ``resolution``;
     returns its metrics."""

@@ -224,20 +224,33 @@ def test_the_fit_predicts_a_held_out_mitsuba_view(fitted):
 # --- (d) issue 29: the paper's light density at native resolution, the self-check against Mitsuba ------------
 
 PAPER_480 = Path(__file__).parents[1] / "rig" / "descriptions" / "paper-480.yaml"
-# Measured 2026-12-04 (balanced, native 168 x 168, 480 lights; before issue 29 in brackets, all lights in that
-# fit): relit fitting view 0.099 (0.242), held-out lights 0.137, held-out view (the paper's) 0.110 (0.237).
-# The bounds are those plus about 15 %; the issue's targets (0.05 / 0.07 / 0.10) are not met: Mitsuba's
-# conductor Fresnel is outside eq. 6, and the copper's kd-grouped materials choose eta apart (docs/decisions.md).
-NATIVE_RELIT, NATIVE_HELDOUT_LIGHTS, NATIVE_VIEW = 0.115, 0.16, 0.13
+# Issue 29's scenes rendered by Mitsuba at the paper's light density (paper-480: 480 lights, the demo camera),
+# fitted by the default workflow at native resolution (168 x 168), every 10th light held out:
+# - "copper": the turned anisotropic GGX copper (a conductor: its Fresnel is outside eq. 6).
+# - "tiles": ggx-tiles' layout (4 x 4 tiles at 16 turns, 11.25 deg apart) of one anisotropic GGX, alpha
+#   0.10 x 0.30, with a dielectric Fresnel (roughconductor, eta 1.5, k 0: the dielectric's reflectance) over
+#   a Lambertian kd 0.15 (blendbsdf, half each: ks 0.5): the model's own family, rendered by another renderer.
+# Measured 2026-12-05 (relit fitting view / held-out lights / the paper's held-out view):
+# copper 0.038 / 0.065 / 0.037 (2026-12-04, before the tables were fitted to the samples: 0.099 / 0.137 / 0.110);
+# tiles 0.049 / 0.074 / 0.049. The bounds: the measurement plus about 15 %, and never above the issue's
+# (0.05 / 0.07 / 0.10): the tiles' relit view meets 0.05 (bound 0.05), their held-out lights miss 0.07 (bound
+# 0.085); docs/accuracy.md.
+MITSUBA_TILES_BSDF = {"type": "blendbsdf", "weight": 0.5,
+                      "bsdf_0": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.30, 0.30, 0.30]}},
+                      "bsdf_1": {"type": "roughconductor", "distribution": "ggx", "alpha_u": 0.10, "alpha_v": 0.30,
+                                 "eta": 1.5, "k": 0.0}}
+NATIVE = {"copper": (COPPER, "turned", (0.045, 0.075, 0.045)),
+          "tiles": (MITSUBA_TILES_BSDF, "tiles", (0.05, 0.085, 0.056))}
 
 
-@pytest.fixture(scope="module")
-def fitted_native(repo, tmp_path_factory):
-    """Mitsuba renders the turned copper under paper-480 (480 lights, the demo camera) and a held-out view
-    (30 lights); the default workflow fits it at native resolution and self-checks it."""
-    root = tmp_path_factory.mktemp("mitsuba480")
-    mc.render_capture(PAPER_480, COPPER, root / "capture", SIZE, frame="turned", spp=8, seed=3)
-    mc.render_capture(PAPER_480, COPPER, root / "heldout", SIZE, frame="turned", spp=8, seed=3,
+@pytest.fixture(scope="module", params=sorted(NATIVE))
+def fitted_native(request, repo, tmp_path_factory):
+    """Mitsuba renders the scene under paper-480 and a held-out view (30 lights); the default workflow fits it
+    at native resolution and self-checks it; `facetsynth predict` renders the held-out view from the fit."""
+    bsdf, frame, bounds = NATIVE[request.param]
+    root = tmp_path_factory.mktemp(f"mitsuba480-{request.param}")
+    mc.render_capture(PAPER_480, bsdf, root / "capture", SIZE, frame=frame, spp=8, seed=3)
+    mc.render_capture(PAPER_480, bsdf, root / "heldout", SIZE, frame=frame, spp=8, seed=3,
                       view=HELDOUT_VIEW, led_every=4, position_every=4)
     workdir = _workdir(repo, root / "wf", root / "capture")
     done = subprocess.run([sys.executable, "-m", "snakemake", "--cores", "2", "results/mitsuba/svbrdf",
@@ -245,21 +258,16 @@ def fitted_native(repo, tmp_path_factory):
     assert done.returncode == 0, done.stderr[-3000:]
     assert cli.main(["predict", str(workdir / "results/mitsuba/svbrdf"), str(root / "heldout/manifest.json"),
                      str(root / "predicted")]) == 0
-    return {"root": root, "workdir": workdir}
+    return {"root": root, "workdir": workdir, "name": request.param, "bounds": bounds}
 
 
 @pytest.mark.scenes
 def test_the_native_fit_reproduces_its_own_mitsuba_frames(fitted_native):
     """Issue 29: the fitting view relit, lights held out of the fit, and a view never seen, all against
     Mitsuba's frames; the refinement lowers the error on the samples the fit used."""
+    relit_bound, lights_bound, view_bound = fitted_native["bounds"]
     selfcheck = json.loads((fitted_native["workdir"] / "results/mitsuba/selfcheck/metrics.json").read_text())
     refine = json.loads((fitted_native["workdir"] / "results/mitsuba/refine/metrics.json").read_text())
-    print("self-check", selfcheck["relit"], selfcheck["heldout"], "refine", refine["fitting_samples_rel_l2_before"],
-          refine["fitting_samples_rel_l2_after"])
-    assert selfcheck["relit"]["frames"] == 54 and selfcheck["heldout"]["frames"] == 48
-    assert selfcheck["relit"]["rel_l2"] <= NATIVE_RELIT
-    assert selfcheck["heldout"]["rel_l2"] <= NATIVE_HELDOUT_LIGHTS
-    assert refine["fitting_samples_rel_l2_after"] < 0.5 * refine["fitting_samples_rel_l2_before"]
     root = fitted_native["root"]
     held = manifest_io.load(root / "heldout")
     mask = mc.sample_pixels(manifest_io.camera(held), SIZE, held["provenance"]["markers"])
@@ -267,5 +275,11 @@ def test_the_native_fit_reproduces_its_own_mitsuba_frames(fitted_native):
     predicted = np.stack([read_rgb(root / f"predicted/frames/{q:04d}.exr")
                           for q in range(len(held["frames"]))]).astype(float)[:, mask]
     rel_l2 = float(np.sqrt(((predicted - truth) ** 2).sum() / (truth ** 2).sum()))
-    print(f"held-out view relative L2 {rel_l2:.4f}")
-    assert rel_l2 <= NATIVE_VIEW
+    print(f"{fitted_native['name']}: relit {selfcheck['relit']['rel_l2']:.4f}, held-out lights "
+          f"{selfcheck['heldout']['rel_l2']:.4f}, held-out view {rel_l2:.4f}; refine on the samples "
+          f"{refine['fitting_samples_rel_l2_before']:.4f} -> {refine['fitting_samples_rel_l2_after']:.4f}")
+    assert selfcheck["relit"]["frames"] == 54 and selfcheck["heldout"]["frames"] == 48
+    assert selfcheck["relit"]["rel_l2"] <= relit_bound
+    assert selfcheck["heldout"]["rel_l2"] <= lights_bound
+    assert refine["fitting_samples_rel_l2_after"] < 0.5 * refine["fitting_samples_rel_l2_before"]
+    assert rel_l2 <= view_bound

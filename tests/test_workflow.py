@@ -123,11 +123,12 @@ def test_noise_free_demo_predicts_held_out_views_and_fits_stencils(demo_run):
         assert view["heldout_rel_l2"] <= 0.175
         assert view["heldout_rel_l2"] < view["baseline_ward_rel_l2"]
     assert validate["heldout_rel_l2"] <= 0.165                               # measured 0.110 (0.136)
-    # issue 29, measured with default noise 2026-12-04 (before the issue in brackets): held-out views 0.067
-    # (0.094); self-check relit 0.056 (0.095), held-out lights 0.055; noise-free is no worse
-    assert validate["heldout_rel_l2"] <= 0.077
+    # issue 29, measured with default noise 2026-12-05 (2026-12-04, before the tables were fitted to the samples;
+    # before the issue): held-out views 0.060 (0.067; 0.094); self-check relit 0.046 (0.056; 0.095), held-out
+    # lights 0.042 (0.055); noise-free is no worse. Bounds: about 15 % above.
+    assert validate["heldout_rel_l2"] <= 0.07
     check = metrics(demo_run, "demo", "selfcheck")
-    assert check["relit"]["rel_l2"] <= 0.065 and check["heldout"]["rel_l2"] <= 0.065 and not check["poor_fit"]
+    assert check["relit"]["rel_l2"] <= 0.053 and check["heldout"]["rel_l2"] <= 0.049 and not check["poor_fit"]
     # maps as smooth as the material: the copper's ks within a few per cent everywhere (p10 / p90 of the
     # median measured 0.968 / 1.022; before, 0.99 / 1.64: wedges of 1.5 x), and the markers black
     model = SVBRDF.load(demo_run / "results/demo/svbrdf")

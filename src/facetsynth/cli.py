@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import math
+import os
+import signal
 import sys
 from pathlib import Path
 
@@ -59,7 +62,7 @@ def _render(args: argparse.Namespace) -> None:
     settings = PreviewSettings(theta_deg=args.view[0], phi_deg=args.view[1],
                                light=None if args.light is None else tuple(args.light),
                                intensity=args.intensity, size=args.size, exposure_ev=args.exposure)
-    done = render_preview(args.model_dir, args.output, settings)
+    done = render_preview(args.model_dir, args.output, settings, force=args.force)
     light = ", ".join(f"{v:.3f}" for v in done["light"])
     print(f"{done['file']}: {done['width']}x{done['height']}, {done['sample_pixels']} pixels see the sample, "
           f"light at ({light}) m, exposure x{done['exposure_scale']:.3g}")
@@ -87,15 +90,15 @@ def _write_stencil_outputs(args: argparse.Namespace, model, scores: dict | None,
     (with ``--force``, the folder not being empty) but never replace it.
     """
     from .fileio import atomic_path
-    from .outputs import prepare_output_dir
+    from .outputs import output_folder
     from .stencil import model_to_json, to_brdf_explorer
     params = model_to_json(model, scores)
     if args.out:
-        out = prepare_output_dir(args.out, args.command, input_files=[source], writes=STENCIL_OUTPUTS,
-                                 force=args.force)
-        for name, text in zip(STENCIL_OUTPUTS, (json.dumps(params, indent=2), to_brdf_explorer(model))):
-            with atomic_path(out / name) as tmp:
-                tmp.write_text(text + "\n")
+        with output_folder(args.out, args.command, input_files=[source], writes=STENCIL_OUTPUTS,
+                           force=args.force) as stage:
+            for name, text in zip(STENCIL_OUTPUTS, (json.dumps(params, indent=2), to_brdf_explorer(model))):
+                with atomic_path(stage / name) as tmp:
+                    tmp.write_text(text + "\n")
     if args.json:
         print(json.dumps(params, indent=2))
     return params
@@ -183,6 +186,15 @@ def _finite_float(text: str) -> float:
     return x
 
 
+def _exposure(text: str) -> float:
+    """--exposure: a finite number of EV from -MAX_EXPOSURE_EV to MAX_EXPOSURE_EV (2^EV must be a float)."""
+    from .preview import MAX_EXPOSURE_EV
+    ev = _finite_float(text)
+    if not -MAX_EXPOSURE_EV <= ev <= MAX_EXPOSURE_EV:
+        raise argparse.ArgumentTypeError(f"must be from -{MAX_EXPOSURE_EV} to {MAX_EXPOSURE_EV} EV, got {ev:g}")
+    return ev
+
+
 def _open_unit(text: str) -> float:
     """A support width w: 0 < w < 1."""
     w = _finite_float(text)
@@ -237,11 +249,14 @@ def main(argv: list[str] | None = None) -> int:
                           "mirrored about the normal, 2 sample diagonals away: the highlight on the sample)")
     ren.add_argument("--intensity", type=_finite_float, default=1.0, help="light intensity, W/sr (default 1)")
     ren.add_argument("--size", type=_integer, default=512, help="picture width and height in pixels (default 512)")
-    ren.add_argument("--exposure", type=_finite_float, default=None, metavar="EV",
+    ren.add_argument("--exposure", type=_exposure, default=None, metavar="EV",
                      help="scale the radiance by 2^EV before display encoding (default: auto, the lit sample's "
                           "99.5th percentile to white)")
     ren.add_argument("-o", "--output", required=True, metavar="FILE",
-                     help="picture to write: .png, .jpg or .tif (tone-mapped sRGB) or .exr (linear radiance)")
+                     help="picture to write: .png, .jpg or .tif (tone-mapped sRGB) or .exr (linear radiance); "
+                          "never in the model folder; an existing file only if render wrote it")
+    ren.add_argument("--force", action="store_true", help="replace an existing picture render did not write "
+                                                          "(never a file of the model)")
     ren.set_defaults(run=_render)
 
     exp = commands.add_parser("export", help="a fitted SVBRDF for a renderer: mitsuba (exact: scene and BSDF "
@@ -291,10 +306,29 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         args.run(args)
+        sys.stdout.flush()                  # a closed pipe shows here, not at exit
     except (InputError, RigError) as exc:
         print(f"facetsynth {args.command}: error: {exc}", file=sys.stderr)
         return 1
+    except KeyboardInterrupt:
+        print(f"facetsynth {args.command}: interrupted; no partial output left", file=sys.stderr)
+        return INTERRUPTED
+    except BrokenPipeError:
+        _silence_stdout()
+        return BROKEN_PIPE
     return 0
+
+
+INTERRUPTED = 128 + signal.SIGINT      # 130: the exit status of a command stopped by Ctrl-C
+BROKEN_PIPE = 128 + signal.SIGPIPE     # 141: as a Unix tool whose reader went away (`... | head`), silently
+
+
+def _silence_stdout() -> None:
+    """Point stdout at /dev/null: its reader is gone, and Python's flush at exit would fail again, loudly."""
+    try:
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+    except (OSError, ValueError, AttributeError, io.UnsupportedOperation):
+        pass                            # not a real file (captured by a test): nothing is flushed at exit
 
 
 if __name__ == "__main__":

@@ -16,3 +16,15 @@ class InputError(ValueError):
         self.path = None if path is None else Path(path)
         self.problem = problem
         super().__init__(problem if path is None else f"{path}: {problem}")
+
+
+EXCERPT_CHARS = 80
+"""The most characters of an input's own text an error message quotes (issue 32: errors never echo a
+file's contents beyond a bounded, escaped excerpt)."""
+
+
+def excerpt(text: object, limit: int = EXCERPT_CHARS) -> str:
+    """``text`` for an error message: non-printable characters escaped as ``repr`` does (a newline as
+    ``\\n``: the message stays one line), cut to ``limit`` characters with "..." when longer."""
+    shown = repr(str(text))[1:-1]
+    return shown if len(shown) <= limit else shown[:limit] + "..."

@@ -14,11 +14,13 @@ writes in the same folder or resumes the same staging folder.
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import logging
 import os
 import re
 import shutil
+import stat
 import threading
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator
@@ -27,7 +29,7 @@ import numpy as np
 import OpenEXR
 import yaml
 
-from .errors import InputError
+from .errors import InputError, excerpt
 
 PathLike = str | os.PathLike
 
@@ -181,38 +183,102 @@ _PRECISIONS = {"float32": (np.float32, OpenEXR.ZIP_COMPRESSION),
                "float16": (np.float16, OpenEXR.ZIP_COMPRESSION)}
 
 
-def read_exr(path: PathLike) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+MAX_IMAGE_BYTES = 4 << 30
+"""The most memory an image's pixels may take once read as float32 (4 GiB: a 100-megapixel frame's R, G, B
+and a mask, twice the largest camera in use here): a file whose header declares more is refused before
+any pixel is read (docs/decisions.md, "Hostile input: captures and config (issue 32)")."""
+
+
+def exr_header(path: PathLike) -> dict[str, Any]:
+    """An EXR file's header, read without its pixels; InputError naming the file when it is missing, a folder
+    or not an OpenEXR image."""
+    path = Path(path)
+    _require_file(path)
+    try:
+        return dict(OpenEXR.File(str(path), header_only=True).header())
+    except Exception as exc:  # OpenEXR raises bare RuntimeErrors on damaged files
+        raise InputError(path, f"not a readable OpenEXR image ({excerpt(str(exc))})") from None
+
+
+def exr_size(path: PathLike, header: dict[str, Any] | None = None) -> tuple[int, int]:
+    """(width, height) an EXR file declares (its data window); InputError when the data window is not its
+    display window (pixels offset or cropped within the image: read as if at the origin they would be
+    misplaced)."""
+    path = Path(path)
+    header = exr_header(path) if header is None else header
+    try:
+        (x0, y0), (x1, y1) = (tuple(int(v) for v in corner) for corner in header["dataWindow"])
+        display = header.get("displayWindow")
+        shown = None if display is None else tuple(tuple(int(v) for v in corner) for corner in display)
+    except (KeyError, TypeError, ValueError):
+        raise InputError(path, "not a readable OpenEXR image (no data window in its header)") from None
+    width, height = x1 - x0 + 1, y1 - y0 + 1
+    if width <= 0 or height <= 0:
+        raise InputError(path, f"not a readable OpenEXR image (empty data window ({x0}, {y0})-({x1}, {y1}))")
+    if shown is not None and shown != ((x0, y0), (x1, y1)):
+        (dx0, dy0), (dx1, dy1) = shown
+        raise InputError(path, f"its pixels (data window ({x0}, {y0})-({x1}, {y1})) are not its image (display "
+                               f"window ({dx0}, {dy0})-({dx1}, {dy1})): an offset or cropped EXR would be read "
+                               "misplaced; write the whole image (crop or pad it to its display window)")
+    return width, height
+
+
+def _refuse_large(path: Path, width: int, height: int, channels: int) -> None:
+    """InputError when ``channels`` float32 channels of width x height would take more than MAX_IMAGE_BYTES."""
+    if 4 * width * height * channels > MAX_IMAGE_BYTES:
+        raise InputError(path, f"declares {width}x{height} pixels of {channels} channel(s), "
+                               f"{4 * width * height * channels / 2**30:.3g} GiB as float32: more than the "
+                               f"{MAX_IMAGE_BYTES / 2**30:g} GiB an image may take; refused before reading it")
+
+
+def read_exr(path: PathLike, shape: tuple[int, int] | None = None) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """Read every channel of an EXR file as float32 arrays, and its header.
 
-    R, G, B come back together as ``"RGB"`` (H, W, 3); other channels by name.
-    Raises InputError naming the file when it is missing or unreadable.
+    R, G, B come back together as ``"RGB"`` (H, W, 3); other channels by name: an RGBA file's alpha as
+    ``"A"`` (``NAME.R/G/B/A`` layers likewise as ``NAME.RGB`` and ``NAME.A``), a depth as ``"Z"``.
+    The header is read first (:func:`exr_size`): a data window offset from the display window, or a
+    declared size beyond :data:`MAX_IMAGE_BYTES` (or, with ``shape`` (height, width), any size but
+    that one) is refused before a pixel is read. Raises InputError naming the file when it is missing
+    or unreadable.
     """
     path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "file not found")
+    header = exr_header(path)
+    width, height = exr_size(path, header)
+    if shape is not None and (height, width) != tuple(shape[:2]):
+        raise InputError(path, f"frame is {width}x{height}, the manifest's camera is {shape[1]}x{shape[0]} "
+                               "(the file's header; no pixel read)")
+    _refuse_large(path, width, height, max(1, len(header.get("channels", ()))))
     try:
         f = OpenEXR.File(str(path))
         channels = {name: np.asarray(ch.pixels, dtype=np.float32) for name, ch in f.channels().items()}
         header = dict(f.header())
     except Exception as exc:  # OpenEXR raises bare RuntimeErrors on damaged files
-        raise InputError(path, f"not a readable OpenEXR image ({exc})") from None
+        raise InputError(path, f"not a readable OpenEXR image ({excerpt(str(exc))})") from None
+    for name in [n for n, a in channels.items() if a.ndim == 3 and a.shape[-1] == 4]:
+        rgba = channels.pop(name)     # R, G, B, A read as one: "RGBA", or a layer's "NAME" (NAME.R/G/B/A)
+        rgb_name, alpha_name = ("RGB", "A") if name == "RGBA" else (name, f"{name}.A")
+        channels[rgb_name], channels[alpha_name] = rgba[..., :3], rgba[..., 3]
     return channels, header
 
 
-def read_rgb(path: PathLike, require_finite: bool = True) -> np.ndarray:
-    """Read the R, G, B channels of an EXR image as a (H, W, 3) float32 array."""
-    return read_frame(path, require_finite)[0]
+def read_rgb(path: PathLike, require_finite: bool = True, shape: tuple[int, int] | None = None) -> np.ndarray:
+    """Read the R, G, B channels of an EXR image as a (H, W, 3) float32 array (``shape``: :func:`read_exr`)."""
+    return read_frame(path, require_finite, shape)[0]
 
 
-def read_frame(path: PathLike, require_finite: bool = True) -> tuple[np.ndarray, np.ndarray]:
+def read_frame(path: PathLike, require_finite: bool = True,
+               shape: tuple[int, int] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Read an HDR frame: R, G, B (H, W, 3) and its ``saturated`` mask (H, W) bool.
 
-    The mask is all False when the file has no ``saturated`` channel. With
-    ``require_finite``, a NaN or Inf pixel is an InputError naming the pixel.
+    Channels beyond R, G, B and ``saturated`` (alpha, depth, layers) are ignored. The mask is all False
+    when the file has no ``saturated`` channel. With ``require_finite``, a NaN or Inf pixel is an
+    InputError naming the pixel. ``shape`` (height, width): any other declared size is an InputError
+    before a pixel is read.
     """
-    channels, _ = read_exr(path)
+    channels, _ = read_exr(path, shape)
     if "RGB" not in channels:
-        raise InputError(path, f"no R, G, B channels (found: {', '.join(sorted(channels))})")
+        found = ", ".join(excerpt(name, 20) for name in sorted(channels)[:12])
+        raise InputError(path, f"no R, G, B channels (found: {found}{', ...' if len(channels) > 12 else ''})")
     rgb = channels["RGB"]
     if require_finite and not np.isfinite(rgb).all():
         bad = np.argwhere(~np.isfinite(rgb).all(axis=-1))
@@ -231,8 +297,9 @@ def exposure_bits(path: PathLike) -> int | None:
     """How an exposure file stores its values: None for OpenEXR (linear exposure values), 8 for an 8-bit
     image (JPEG, PNG, TIFF: a camera's nonlinear codes, linearized by the hdr stage's recovered response,
     :mod:`facetsynth.response`). Decided by the pixel format (OpenImageIO), not the name; any other format
-    is an InputError naming the file."""
+    is an InputError naming the file, as are a folder or a symlink loop in its place."""
     path = Path(path)
+    _require_file(path)
     try:
         with open(path, "rb") as f:
             if f.read(4) == _EXR_MAGIC:
@@ -249,32 +316,63 @@ def exposure_bits(path: PathLike) -> int | None:
                            "8-bit images (JPEG, PNG, TIFF)")
 
 
-def read_codes(path: PathLike) -> np.ndarray:
-    """An 8-bit image's codes as (H, W, 3) uint8 (a grey image repeated in R, G, B; alpha dropped)."""
+def read_codes(path: PathLike, shape: tuple[int, int] | None = None) -> np.ndarray:
+    """An 8-bit image's codes as (H, W, 3) uint8 (a grey image repeated in R, G, B; alpha dropped). The size
+    its header declares is checked before its pixels are read: beyond :data:`MAX_IMAGE_BYTES`, or (with
+    ``shape``, (height, width)) any other size, is an InputError."""
     import OpenImageIO as oiio
 
     path = Path(path)
+    _require_file(path)
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
-        raise InputError(path, f"not a readable image ({oiio.geterror().strip() or 'unknown format'})")
+        raise InputError(path, f"not a readable image ({excerpt(oiio.geterror().strip() or 'unknown format')})")
     try:
         spec = inp.spec()
+        if shape is not None and (spec.height, spec.width) != tuple(shape[:2]):
+            raise InputError(path, f"frame is {spec.width}x{spec.height}, the manifest's camera is "
+                                   f"{shape[1]}x{shape[0]} (the file's header; no pixel read)")
+        if 4 * spec.width * spec.height * max(3, spec.nchannels) > MAX_IMAGE_BYTES:
+            raise InputError(path, f"declares {spec.width}x{spec.height} pixels: more than the "
+                                   f"{MAX_IMAGE_BYTES / 2**30:g} GiB an image may take; refused before reading it")
         pixels = inp.read_image(0, 0, 0, spec.nchannels, oiio.UINT8)
     finally:
         inp.close()
     if pixels is None or spec.nchannels not in (1, 3, 4):
-        raise InputError(path, f"unreadable 8-bit image ({spec.nchannels} channels; {oiio.geterror().strip()})")
+        raise InputError(path, f"unreadable 8-bit image ({spec.nchannels} channels; "
+                               f"{excerpt(oiio.geterror().strip())})")
     pixels = np.asarray(pixels, np.uint8).reshape(spec.height, spec.width, spec.nchannels)
     return np.ascontiguousarray(np.repeat(pixels, 3, axis=-1) if spec.nchannels == 1 else pixels[..., :3])
 
 
-def read_exposure(path: PathLike) -> tuple[np.ndarray, int | None]:
+def read_exposure(path: PathLike, shape: tuple[int, int] | None = None) -> tuple[np.ndarray, int | None]:
     """An exposure file's values as (H, W, 3) float32 and its bits (:func:`exposure_bits`): an EXR's linear
-    values (NaN / Inf kept), or an 8-bit image's codes 0..255 (NOT linear: see :mod:`facetsynth.response`)."""
+    values (NaN / Inf kept), or an 8-bit image's codes 0..255 (NOT linear: see :mod:`facetsynth.response`).
+    With ``shape`` (height, width), a file of another size is refused from its header, before its pixels
+    are read."""
     bits = exposure_bits(path)
     if bits is None:
-        return read_frame(path, require_finite=False)[0], None
-    return read_codes(path).astype(np.float32), bits
+        return read_frame(path, require_finite=False, shape=shape)[0], None
+    return read_codes(path, shape).astype(np.float32), bits
+
+
+def _require_file(path: Path) -> None:
+    """InputError naming ``path`` unless it is a file (or a link to one): a folder, a symlink loop or a
+    missing file each said so in one line."""
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        raise InputError(path, "file not found") from None
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise InputError(path, "a symbolic link loop, not a file") from None
+        raise InputError(path, f"unreadable ({exc.strerror})") from None
+    except ValueError as exc:   # a NUL byte in the name
+        raise InputError(path, f"not a usable file name ({exc})") from None
+    if stat.S_ISDIR(mode):
+        raise InputError(path, "is a folder, not a file")
+    if not stat.S_ISREG(mode):
+        raise InputError(path, "not a regular file")
 
 
 def _oiio_spec(path: Path):
@@ -309,29 +407,100 @@ def _json_default(obj: Any) -> Any:
 
 
 def read_json(path: PathLike) -> Any:
-    """Read a JSON document; InputError names the file on failure."""
+    """Read a JSON document; InputError names the file on failure, a key given twice in one object
+    included (Python's json would keep the last silently)."""
     path = Path(path)
+    _require_file(path)
     try:
-        return json.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputError(path, "file not found") from None
+        return json.loads(_read_text(path), object_pairs_hook=_unique_keys)
     except json.JSONDecodeError as exc:
         raise InputError(path, f"not valid JSON ({exc})") from None
     except UnicodeDecodeError as exc:
         raise InputError(path, f"not valid JSON: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
     except RecursionError:
         raise InputError(path, "not valid JSON: nested too deeply") from None
+    except _DuplicateKey as exc:
+        raise InputError(path, f"not valid JSON: key '{excerpt(exc.key)}' appears twice in one object "
+                               "(which value is meant?)") from None
+
+
+class _DuplicateKey(ValueError):
+    """A key given twice in one JSON object or YAML mapping."""
+
+    def __init__(self, key: Any, line: int | None = None):
+        super().__init__(key)
+        self.key, self.line = key, line
+
+
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """json's object_pairs_hook: the object as a dict, or _DuplicateKey for a key given twice."""
+    seen: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in seen:
+            raise _DuplicateKey(key)
+        seen[key] = value
+    return seen
+
+
+def _read_text(path: Path) -> str:
+    """A text file's contents; InputError for a file that cannot be read (missing, a folder, no permission)."""
+    try:
+        return path.read_text()
+    except FileNotFoundError:
+        raise InputError(path, "file not found") from None
+    except IsADirectoryError:
+        raise InputError(path, "is a folder, not a file") from None
+    except UnicodeDecodeError:
+        raise
+    except OSError as exc:
+        raise InputError(path, f"unreadable ({exc.strerror or exc})") from None
+
+
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """YAML's safe loader that refuses a key given twice in one mapping (YAML 1.2 forbids it; PyYAML keeps
+    the last silently). Merge keys (``<<``) still override, as YAML defines them."""
+
+    def construct_mapping(self, node, deep=False):
+        if isinstance(node, yaml.MappingNode):
+            seen = set()
+            for key_node, _ in node.value:
+                if key_node.tag == "tag:yaml.org,2002:merge":
+                    continue
+                key = self.construct_object(key_node, deep=deep)
+                try:
+                    duplicate = key in seen
+                    seen.add(key)
+                except TypeError:     # an unhashable key: SafeLoader names it
+                    continue
+                if duplicate:
+                    raise _DuplicateKey(key, key_node.start_mark.line + 1)
+        return super().construct_mapping(node, deep=deep)
+
+
+_UniqueKeyLoader.add_constructor("tag:yaml.org,2002:map", _UniqueKeyLoader.construct_yaml_map)
 
 
 def read_yaml(path: PathLike) -> Any:
-    """Read a YAML document; InputError names the file on failure."""
+    """Read a YAML document; InputError names the file on failure (a key given twice in one mapping
+    included). A syntax error is reported by its line, column and problem, never by echoing the file."""
     path = Path(path)
+    _require_file(path)
     try:
-        return yaml.safe_load(path.read_text())
-    except FileNotFoundError:
-        raise InputError(path, "file not found") from None
+        return yaml.load(_read_text(path), Loader=_UniqueKeyLoader)
+    except UnicodeDecodeError as exc:
+        raise InputError(path, f"not valid YAML: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
+    except _DuplicateKey as exc:
+        raise InputError(path, f"not valid YAML: key '{excerpt(exc.key)}' appears twice in one mapping "
+                               f"(line {exc.line}; which value is meant?)") from None
+    except yaml.MarkedYAMLError as exc:
+        mark = exc.problem_mark or exc.context_mark
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        raise InputError(path, f"not valid YAML{where}: {excerpt(exc.problem or exc.context or 'syntax error')}"
+                         ) from None
     except yaml.YAMLError as exc:
-        raise InputError(path, f"not valid YAML ({exc})") from None
+        raise InputError(path, f"not valid YAML ({excerpt(exc)})") from None
+    except RecursionError:
+        raise InputError(path, "not valid YAML: nested too deeply") from None
 
 
 def read_npy(path: PathLike, mmap_mode: str | None = None) -> np.ndarray:

@@ -11,7 +11,9 @@ manifest's folder or absolute.
 from __future__ import annotations
 
 import difflib
+import errno
 import math
+import os
 import re
 from pathlib import Path
 from typing import Any
@@ -19,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from .camera import Camera
-from .errors import InputError
+from .errors import InputError, excerpt
 from .fileio import read_json, write_json
 from .validation import validate as validate_schema
 
@@ -29,6 +31,12 @@ ROTATION_TOLERANCE = 1e-5
 decimals (rounding error <= 3e-6), tight enough to be a rotation to far below a pixel."""
 
 NEVER_CLIPPED_HINT = 'state "saturation": null for data that were never clipped'
+
+EXPOSURE_TIME_RANGE = (1e-9, 1e9)
+"""Exposure times (s) the merge's arithmetic survives, and every shutter does: 1 ns to 31 years. The merge
+works in float32 (1 / t, v / t, (t / t_max)^2, the shot noise t v): at 1e-320 s a frame came out NaN, at
+1e308 s dark; within this range every term stays a normal float32 for values up to 1e20
+(docs/decisions.md, "Hostile input: captures and config (issue 32)")."""
 
 
 def validate(manifest: Any, path: str | Path | None = None) -> None:
@@ -42,7 +50,8 @@ def validate(manifest: Any, path: str | Path | None = None) -> None:
     the origin, is in front of it: t_z > 0; an orthographic camera looks down: r3_z < 0) and the origin
     projects inside the image (the whole sample need not: a close-up is legitimate); every light (its
     position, or a directional light's direction) is strictly above the sample plane (z > 0) and its
-    intensity is not all zero. ``saturation`` is required: a number > 0, or null for data that were
+    intensity is not all zero; every exposure time within :data:`EXPOSURE_TIME_RANGE` and a frame's times
+    distinct (and, on :func:`load`, a frame's files distinct). ``saturation`` is required: a number > 0, or null for data that were
     never clipped. A missing required key names any close match among the keys beside it.
     """
     _check_finite(manifest, path)
@@ -54,6 +63,25 @@ def validate(manifest: Any, path: str | Path | None = None) -> None:
         _check_camera(manifest["camera"], path)
     for q, frame in enumerate(manifest["frames"]):
         _check_light(frame["light"], f"frames/{q}/light", path)
+        _check_times(frame["exposures"], f"frames/{q}/exposures", path)
+
+
+def _check_times(exposures: list[dict[str, Any]], where: str, path: str | Path | None) -> None:
+    """Each exposure time within :data:`EXPOSURE_TIME_RANGE`, and a frame's times distinct (a bracket of
+    equal times is one exposure listed twice, or a time typed wrong: the merge would weigh them wrongly)."""
+    low, high = EXPOSURE_TIME_RANGE
+    seen: dict[float, int] = {}
+    for e, exposure in enumerate(exposures):
+        t = exposure["time"]
+        if not low <= t <= high:
+            raise _invalid(path, f"{where}/{e}/time", f"exposure time {t:.4g} s is outside [{low:g}, {high:g}] s, "
+                                                      "the range the HDR merge's float arithmetic survives (a "
+                                                      "time in other units than seconds?)")
+        if t in seen:
+            raise _invalid(path, f"{where}/{e}/time", f"exposure time {t:g} s is that of {where}/{seen[t]} too: a "
+                                                      "frame's exposures need distinct times (one picture listed "
+                                                      "twice, or a time typed wrong?)")
+        seen[t] = e
 
 
 def _invalid(path: str | Path | None, where: str, problem: str) -> InputError:
@@ -163,14 +191,22 @@ def load(path: str | Path, check_files: bool = True) -> dict[str, Any]:
     path = Path(path)
     if path.is_dir():
         path = path / "manifest.json"
+    if path.is_dir():
+        raise InputError(path, "is a folder, not a manifest file")
     manifest = _read_lp(path) if path.suffix.lower() == ".lp" else read_json(path)
     validate(manifest, path)
     folder = path.parent.resolve()
     for q, frame in enumerate(manifest["frames"]):
+        listed: dict[str, int] = {}
         for e, exposure in enumerate(frame["exposures"]):
-            exposure["file"] = _resolve(folder, exposure["file"], f"frames/{q}/exposures/{e}/file", path)
-            if check_files and not Path(exposure["file"]).is_file():
-                raise InputError(exposure["file"], f"frame file listed in {path} is missing")
+            where = f"frames/{q}/exposures/{e}/file"
+            exposure["file"] = _resolve(folder, exposure["file"], where, path)
+            if exposure["file"] in listed:
+                raise _invalid(path, where, f"the file {exposure['file']} is also frames/{q}/exposures/"
+                                            f"{listed[exposure['file']]}/file: one picture cannot be two exposures")
+            listed[exposure["file"]] = e
+            if check_files:
+                _check_file(exposure["file"], path)
         if "truth" in frame and "radiance" in frame["truth"]:
             frame["truth"]["radiance"] = _resolve(folder, frame["truth"]["radiance"], f"frames/{q}/truth/radiance",
                                                   path)
@@ -178,6 +214,17 @@ def load(path: str | Path, check_files: bool = True) -> dict[str, Any]:
         manifest["truth"]["scene"] = _resolve(folder, manifest["truth"]["scene"], "truth/scene", path)
     manifest["_dir"] = str(folder)
     return manifest
+
+
+def _check_file(file: str, manifest_path: Path) -> None:
+    """InputError unless the exposure ``file`` is a file: missing, a folder or a symlink loop said so."""
+    if Path(file).is_file():
+        return
+    if Path(file).is_dir():
+        raise InputError(file, f"frame file listed in {manifest_path} is a folder, not a file")
+    if os.path.lexists(file):
+        raise InputError(file, f"frame file listed in {manifest_path} is not a readable file (a broken link?)")
+    raise InputError(file, f"frame file listed in {manifest_path} is missing")
 
 
 def _read_lp(path: Path) -> dict[str, Any]:
@@ -198,9 +245,13 @@ def _resolve(folder: Path, name: str, where: str, path: Path) -> str:
     try:
         resolved = (folder / name).resolve()
         resolved.is_file()                     # raises OSError for a name too long
+    except RuntimeError:                       # Python < 3.13: resolve() on a symlink loop
+        raise _invalid(path, where, f"{folder / name} is a symbolic link loop, not a file") from None
     except (ValueError, OSError) as exc:
+        if isinstance(exc, OSError) and exc.errno == errno.ELOOP:
+            raise _invalid(path, where, f"{folder / name} is a symbolic link loop, not a file") from None
         reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
-        raise _invalid(path, where, f"not a usable file name ({reason})") from None
+        raise _invalid(path, where, f"not a usable file name ({excerpt(reason)})") from None
     return str(resolved)
 
 

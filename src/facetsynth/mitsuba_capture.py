@@ -110,11 +110,20 @@ def sensor_dict(camera: Camera, spp: int = 16, seed: int = 0) -> dict[str, Any]:
     }
 
 
-def frame_azimuth(xy: np.ndarray, frame: str | float) -> np.ndarray:
-    """Azimuth (radians) of the BSDF's u axis at sample points (..., 2): a fixed angle in degrees, or
-    ``"turned"``: along circles about the centre (the polar angle + 90 deg, the demo's lathe-turned disc)."""
+TILES = 4          # frame "tiles": 4 x 4 tiles, tile k = 4 row + col turned by k x 11.25 deg (ggx-tiles' layout)
+
+
+def frame_azimuth(xy: np.ndarray, frame: str | float, size: tuple[float, float] = (0.10, 0.10)) -> np.ndarray:
+    """Azimuth (radians) of the BSDF's u axis at sample points (..., 2): a fixed angle in degrees,
+    ``"turned"``: along circles about the centre (the polar angle + 90 deg, the demo's lathe-turned disc), or
+    ``"tiles"``: TILES x TILES tiles of the ``size`` sample, tile k (row from -y, column from -x) turned by
+    k x 180 / TILES^2 deg, as resources/scenes/ggx-tiles.yaml."""
     if frame == "turned":
         return np.arctan2(xy[..., 1], xy[..., 0]) + np.pi / 2
+    if frame == "tiles":
+        col = np.clip(np.floor((xy[..., 0] / size[0] + 0.5) * TILES), 0, TILES - 1)
+        row = np.clip(np.floor((xy[..., 1] / size[1] + 0.5) * TILES), 0, TILES - 1)
+        return (row * TILES + col) * np.pi / TILES**2
     return np.full(xy.shape[:-1], np.radians(float(frame)))
 
 
@@ -124,7 +133,7 @@ def write_plane_mesh(path: str | Path, width: float, height: float, frame: str |
     the tangent frame: in each of ``cells`` x ``cells`` quads, (u, v) = (x, y) turned by minus the frame
     azimuth at the quad's centre, so Mitsuba's dp/du (the BSDF's u axis) points along that azimuth."""
     mi = mitsuba()
-    n = 1 if frame != "turned" else int(cells)
+    n = {"turned": int(cells), "tiles": TILES}.get(frame, 1) if isinstance(frame, str) else 1
     xs, ys = np.linspace(-width / 2, width / 2, n + 1), np.linspace(-height / 2, height / 2, n + 1)
     corners = []
     for j in range(n):
@@ -133,7 +142,7 @@ def write_plane_mesh(path: str | Path, width: float, height: float, frame: str |
             corners += [a, b, c, a, c, d]                     # counter-clockwise seen from +z: normal +z
     xy = np.asarray(corners, float)                           # (6 n^2, 2), three vertices per triangle
     centres = xy.reshape(-1, 6, 2).mean(axis=1).repeat(6, axis=0)
-    phi = frame_azimuth(centres, frame)
+    phi = frame_azimuth(centres, frame, (width, height))
     uv = np.stack([np.cos(phi) * xy[:, 0] + np.sin(phi) * xy[:, 1],
                    -np.sin(phi) * xy[:, 0] + np.cos(phi) * xy[:, 1]], axis=-1)
     mesh = mi.Mesh("sample", len(xy), len(xy) // 3, has_vertex_normals=False, has_vertex_texcoords=True)
@@ -295,7 +304,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--size", nargs=2, type=float, default=(0.10, 0.10), metavar=("W", "H"),
                         help="sample width and height in metres (default 0.10 0.10)")
     parser.add_argument("--frame", default="turned",
-                        help="azimuth of the BSDF's u axis: degrees, or 'turned' (along circles about the centre)")
+                        help="azimuth of the BSDF's u axis: degrees, 'turned' (along circles about the centre) or 'tiles' (4 x 4 tiles at 16 turns, as ggx-tiles)")
     parser.add_argument("--view", nargs=2, type=float, metavar=("THETA", "PHI"),
                         help="held-out view: camera theta from vertical, phi relative to the rig camera's azimuth "
                              "(degrees); the paper's is 50.9 -15.3")
@@ -312,7 +321,7 @@ def main(argv: list[str] | None = None) -> int:
         bsdf = json.loads(Path(args.bsdf_json).read_text())
     else:
         bsdf = json.loads(args.bsdf_json)
-    frame: str | float = args.frame if args.frame == "turned" else float(args.frame)
+    frame: str | float = args.frame if args.frame in ("turned", "tiles") else float(args.frame)
     made = render_capture(args.rig, bsdf, args.out, tuple(args.size), frame, None if args.no_markers else DEMO_MARKERS,
                           args.spp, args.seed, tuple(args.view) if args.view else None, args.every[0], args.every[1])
     print(f"{args.out}: {len(made['frames'])} HDR frames and manifest.json "

@@ -15,6 +15,7 @@ capture. Pixels off the sample are 0.
 from __future__ import annotations
 
 import logging
+import os
 from pathlib import Path
 from typing import Any
 
@@ -24,12 +25,43 @@ from tqdm import tqdm
 from . import manifest as manifest_io
 from .errors import InputError
 from .fileio import write_exr
-from .outputs import made_by, prepare_output_dir
+from .outputs import output_folder
 from .normals import to_local
 from .render import light_geometry, towards
-from .svbrdf import CHUNK, SVBRDF
+from .svbrdf import CHUNK, SVBRDF, model_grids, refuse_bad_values
 
 log = logging.getLogger(__name__)
+OUTPUTS = ("frames", "manifest.json")    # what predict writes into its output folder, published in this order
+
+
+BYTES_PER_SUBPIXEL = 384       # FrameRenderer's peak memory per sub-pixel, measured 335 B (the sample filling the frame)
+MEMORY_LIMIT_GIB = 16.0        # default limit of that estimate; the environment variable below overrides it
+MEMORY_LIMIT_VARIABLE = "FACETSYNTH_MEMORY_LIMIT_GIB"
+
+
+def memory_limit_gib() -> float:
+    """The memory a rendering may use, GiB: ``$FACETSYNTH_MEMORY_LIMIT_GIB`` if set, else MEMORY_LIMIT_GIB."""
+    text = os.environ.get(MEMORY_LIMIT_VARIABLE)
+    if text is None:
+        return MEMORY_LIMIT_GIB
+    try:
+        limit = float(text)
+    except ValueError:
+        limit = float("nan")
+    if not (np.isfinite(limit) and limit > 0):
+        raise InputError(None, f"{MEMORY_LIMIT_VARIABLE} must be a positive number of GiB, got {text!r:.40}")
+    return limit
+
+
+def memory_problem(width: int, height: int, supersample: int) -> str | None:
+    """Why rendering a width x height camera at ``supersample`` is refused before any allocation (None when it
+    is not): FrameRenderer's memory, BYTES_PER_SUBPIXEL per sub-pixel, would exceed :func:`memory_limit_gib`."""
+    need = int(width) * int(height) * int(supersample) ** 2 * BYTES_PER_SUBPIXEL / 2.0 ** 30
+    limit = memory_limit_gib()
+    if need <= limit:
+        return None
+    return (f"a {width}x{height} camera at supersample {supersample} needs about {need:.3g} GiB to render, above "
+            f"the limit of {limit:g} GiB (set {MEMORY_LIMIT_VARIABLE} to raise it)")
 
 
 class FrameRenderer:
@@ -38,6 +70,9 @@ class FrameRenderer:
     def __init__(self, model, camera, supersample: int = 1):
         if camera.has_distortion:
             raise ValueError("lens distortion is not supported by predict yet (undistort the capture first)")
+        too_big = memory_problem(camera.width, camera.height, supersample)
+        if too_big:
+            raise ValueError(too_big)
         self.model, self.camera, self.s = model, camera, int(supersample)
         xy = camera.pixel_plane_points(self.s)                       # (H s, W s, 2)
         points = np.concatenate([xy, np.zeros(xy.shape[:-1] + (1,))], axis=-1)
@@ -81,7 +116,8 @@ class FrameRenderer:
         image = np.zeros(self.mask.shape + (3,))
         image[self.mask] = value
         s = self.s
-        return image.reshape(self.camera.height, s, self.camera.width, s, 3).mean(axis=(1, 3)).astype(np.float32)
+        with np.errstate(over="ignore"):     # beyond float32: Inf, which predict and render refuse to write
+            return image.reshape(self.camera.height, s, self.camera.width, s, 3).mean(axis=(1, 3)).astype(np.float32)
 
 
 def load_model(path: str | Path):
@@ -95,12 +131,32 @@ def load_model(path: str | Path):
     if not isinstance(meta, dict):
         raise InputError(path / "model.json", f"expected a JSON object, found {type(meta).__name__}")
     if meta.get("model") == "ward":
-        from .ward import WardSVBRDF
-        try:
-            return WardSVBRDF.load(path)
-        except KeyError as exc:
-            raise InputError(path / "model.json", f"incomplete Ward model description (no {exc})") from None
+        return _checked_ward(path, meta)
     return SVBRDF.load(path)
+
+
+def _checked_ward(path: Path, meta: dict):
+    """The Ward baseline folder ``path``, its parameters checked finite and in range (as
+    :meth:`SVBRDF.check_values`): InputError naming the file and the count of bad values."""
+    from .ward import WardSVBRDF
+    model_grids(path / "model.json", dict(meta, grid={"n_theta": 1, "n_phi": 1},
+                                          shadowing_grid={"n_theta": 1, "n_phi": 1}))
+    try:
+        model = WardSVBRDF.load(path)
+    except KeyError as exc:
+        raise InputError(path / "model.json", f"incomplete Ward model description (no {exc})") from None
+    except ValueError as exc:       # a map of another size than the plane grid
+        raise InputError(path, f"inconsistent Ward model folder ({str(exc):.200})") from None
+    for name, what, values, lowest in (("kd.exr", "kd", model.kd, 0.0), ("ks.exr", "ks", model.ks, 0.0),
+                                       ("lobe.exr", "alpha_x", model.alpha_x, None),
+                                       ("lobe.exr", "alpha_y", model.alpha_y, None),
+                                       ("lobe.exr", "phi", model.phi, None)):
+        refuse_bad_values(path / name, what, values, lowest)
+    for what, alpha in (("alpha_x", model.alpha_x), ("alpha_y", model.alpha_y)):
+        if (alpha <= 0.0).any():
+            raise InputError(path / "lobe.exr", f"{int((alpha <= 0.0).sum())} {what} value(s) <= 0: a Ward lobe's "
+                                                "width is positive")
+    return model
 
 
 def input_folders(model_dir: str | Path, manifest: dict[str, Any]) -> list[Path]:
@@ -138,10 +194,13 @@ def predict(model_dir: str | Path, manifest_path: str | Path, out_dir: str | Pat
     file on a bad one); its frame files need not exist (a manifest can describe
     views never captured).
 
-    The output folder is checked by :func:`facetsynth.outputs.prepare_output_dir`
+    The output folder is checked and written by :func:`facetsynth.outputs.output_folder`
     once the inputs are read: it may not overlap the model, the capture or a
     frame folder, nor be a non-empty folder predict did not make (unless
-    ``force``). Every frame is checked finite before it is written.
+    ``force``), nor one another command is writing; the frames and the
+    manifest are published only when all are written (a failure or a Ctrl-C
+    leaves the old output, or none). Every frame is checked finite before it
+    is written.
     """
     if isinstance(supersample, bool) or not isinstance(supersample, (int, np.integer)) or supersample < 1:
         raise InputError(None, f"supersample must be a positive integer, got {supersample!r}")
@@ -156,24 +215,21 @@ def predict(model_dir: str | Path, manifest_path: str | Path, out_dir: str | Pat
     if not renderer.mask.any():
         log.warning("%s: no pixel of this camera sees the sample", manifest_path)
     selected = range(len(m["frames"])) if frames is None else frames
-    out_dir = prepare_output_dir(out_dir, "predict", input_dirs=input_folders(model_dir, m), force=force)
-    (out_dir / "frames").mkdir(exist_ok=True)
     out_frames = []
-    for q in tqdm(selected, desc="predict", unit="frame", disable=not progress):
-        light = m["frames"][q]["light"]
-        image = _finite_frame(renderer.radiance(manifest_io.light_point(light), light["intensity"]), q,
-                              manifest_path, model_dir)
-        name = f"frames/{q:04d}.exr"
-        write_exr(out_dir / name, {"RGB": image}, {"exposure_time": 1.0, "quantity": "predicted radiance I",
-                                                   "source_frame": int(q)})
-        out_frames.append({"light": light, "exposures": [{"file": name, "time": 1.0}], "source_frame": int(q)})
-    out = {"version": 1, "units": "m", "sample": m["sample"], "camera": m["camera"], "saturation": None,
-           "frames": out_frames,
-           "prediction": {"model": str(Path(model_dir).resolve()), "manifest": str(manifest_path.resolve()),
-                          "supersample": int(supersample)}}
-    manifest_io.save(out_dir / "manifest.json", out)
-    if made_by(out_dir, "predict"):   # its own folder: frames of an earlier prediction the manifest no longer lists
-        written = {out_dir / f["exposures"][0]["file"] for f in out_frames}
-        for stale in sorted(set((out_dir / "frames").glob("*.exr")) - written):
-            stale.unlink()
+    with output_folder(out_dir, "predict", input_dirs=input_folders(model_dir, m), writes=OUTPUTS,
+                       force=force) as stage:
+        (stage / "frames").mkdir()
+        for q in tqdm(selected, desc="predict", unit="frame", disable=not progress):
+            light = m["frames"][q]["light"]
+            image = _finite_frame(renderer.radiance(manifest_io.light_point(light), light["intensity"]), q,
+                                  manifest_path, model_dir)
+            name = f"frames/{q:04d}.exr"
+            write_exr(stage / name, {"RGB": image}, {"exposure_time": 1.0, "quantity": "predicted radiance I",
+                                                     "source_frame": int(q)})
+            out_frames.append({"light": light, "exposures": [{"file": name, "time": 1.0}], "source_frame": int(q)})
+        out = {"version": 1, "units": "m", "sample": m["sample"], "camera": m["camera"], "saturation": None,
+               "frames": out_frames,
+               "prediction": {"model": str(Path(model_dir).resolve()), "manifest": str(manifest_path.resolve()),
+                              "supersample": int(supersample)}}
+        manifest_io.save(stage / "manifest.json", out)
     return out

@@ -177,3 +177,44 @@ def best_turns(offsets, t, p, denom, r, u, candidates, tables, n_theta, n_phi, w
                 if err < best[x]:
                     best[x], rep_out[x], k_out[x] = err, rep, k
     return best, rep_out, k_out
+
+
+def add_table_normal_equations(m: np.ndarray, v: np.ndarray, cells: np.ndarray, weights: np.ndarray,
+                               coef: np.ndarray, r: np.ndarray, u: np.ndarray) -> None:
+    """Add to the normal equations (``m`` (C, C), ``v`` (C,)) of sum u (r - coef D(h))^2 over the cell values D
+    of one table those of a batch of samples.
+
+    Eq. 6 read forwards for the NDF: with kd, ks, eta and A(k) fixed, a sample's specular residual
+    r = rho - kd/pi is ks F/(4 A(i) A(o)) D(h), linear in the table through the bilinear lookup of h:
+    D(h) = sum_j w_j D[cell_j]. ``cells``, ``weights`` (S, 4) the lookup of every sample's h (in its point's
+    frame, turned as the point is), ``coef``, ``r``, ``u`` (S, 3) per channel ks F / (4 A(i) A(o)), the
+    residual and the sample weight. The channels share the lookup: m += sum_s q_s w w^T with
+    q = sum_c u_c coef_c^2, v += sum_s (sum_c u_c coef_c r_c) w."""
+    q = np.sum(u * coef * coef, axis=-1)
+    p = np.sum(u * coef * r, axis=-1)
+    _accumulate(m, v, np.ascontiguousarray(cells, np.int64), np.ascontiguousarray(weights, float), q, p)
+
+
+@numba.njit(cache=True, nogil=True)
+def _accumulate(m, v, cells, weights, q, p):
+    for s in range(cells.shape[0]):
+        for a in range(cells.shape[1]):
+            ca, wa = cells[s, a], weights[s, a]
+            v[ca] += p[s] * wa
+            for b in range(cells.shape[1]):
+                m[ca, cells[s, b]] += q[s] * wa * weights[s, b]
+
+
+def solve_table(m: np.ndarray, v: np.ndarray, prior: np.ndarray, ridge: float) -> np.ndarray:
+    """The table (C,) minimising the normal equations' error plus lam_j (D_j - prior_j)^2 per cell, clipped at 0.
+
+    lam_j = ridge x (M_jj + mean of the observed M_jj): a cell the samples see a lot follows them, one they
+    barely see (or not at all) keeps ``prior`` (the completed NDF: "keeping the completed NDF where the view
+    saw nothing", issue 29)."""
+    diag = np.diag(m).copy()
+    seen = diag > 0
+    floor = float(diag[seen].mean()) if seen.any() else 1.0
+    lam = ridge * (diag + floor)
+    a = m + np.diag(lam)
+    b = v + lam * prior
+    return np.clip(np.linalg.solve(a, b), 0.0, None)

@@ -10,6 +10,7 @@ only where the stage had the truth (virtual samples).
 from __future__ import annotations
 
 import json
+import math
 import re
 from pathlib import Path
 from typing import Any, Callable
@@ -18,7 +19,15 @@ from .errors import InputError
 
 
 def _num(value: Any, fmt: str) -> str | None:
-    return None if not isinstance(value, (int, float)) or isinstance(value, bool) else format(value, fmt)
+    """``value`` formatted by ``fmt``, None when it is not a number; ValueError for a NaN, an Inf or a fraction
+    given to an integer format (``d``)."""
+    if not isinstance(value, (int, float)) or isinstance(value, bool):
+        return None
+    if fmt.endswith("d") and not isinstance(value, int):
+        if not (math.isfinite(value) and value == int(value)):
+            raise ValueError(f"expected an integer, found {value!r}")
+        value = int(value)
+    return format(value, fmt)
 
 
 # stage -> (metrics file under the sample folder, [(label, key, format)] or a function of the metrics)
@@ -80,12 +89,22 @@ def _light_factors(record: dict | None) -> list[str]:
     return [f"light factors {min(luminance):.2f}-{max(luminance):.2f} (estimated, {len(luminance)} lights)"]
 
 
-def _figures(metrics: dict, spec: Figures | Callable[[dict], list[str]]) -> list[str]:
+def _figures(metrics: dict, spec: Figures | Callable[[dict], list[str]], path: Path | None = None) -> list[str]:
+    """The figures ``spec`` reads from ``metrics``; InputError naming ``path`` and the key for a value of the
+    wrong kind (a NaN where an integer belongs, a string where an object does), never a traceback."""
     if callable(spec):
-        return [s for s in spec(metrics) if s]
+        try:
+            return [s for s in spec(metrics) if s]
+        except InputError as exc:                      # a nested table's value (separate's)
+            raise InputError(path, exc.problem) from None
+        except (KeyError, TypeError, ValueError, AttributeError, IndexError) as exc:
+            raise InputError(path, f"unexpected content ({type(exc).__name__}: {str(exc)[:80]})") from None
     out = []
     for label, key, fmt in spec:
-        text = _num(metrics.get(key), fmt)
+        try:
+            text = _num(metrics.get(key), fmt)
+        except ValueError as exc:
+            raise InputError(path, f"{key!r}: {str(exc)[:80]}") from None
         if text is not None:
             out.append(f"{label} {text}")
     return out
@@ -96,6 +115,10 @@ def _read_json(path: Path) -> dict:
         data = json.loads(path.read_text())
     except (OSError, json.JSONDecodeError) as exc:
         raise InputError(path, f"unreadable ({exc})") from None
+    except UnicodeDecodeError as exc:
+        raise InputError(path, f"unreadable: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
+    except RecursionError:
+        raise InputError(path, "unreadable: nested too deeply") from None
     if not isinstance(data, dict):
         raise InputError(path, f"expected a JSON object, found {type(data).__name__}")
     return data
@@ -130,7 +153,8 @@ def summarise(sample_dir: str | Path) -> list[str]:
             lines.append(f"  {stage:<{width}}  -")
             continue
         metrics = _read_json(done[stage])
-        lines.append(f"  {stage:<{width}}  done: " + (", ".join(_figures(metrics, spec)) or "no figures"))
+        lines.append(f"  {stage:<{width}}  done: " + (", ".join(_figures(metrics, spec, done[stage]))
+                                                      or "no figures"))
         if metrics.get("degenerate"):
             warnings.append(f"{stage}: degenerate: {metrics['degenerate']}")
     warnings += log_warnings(sample_dir / "logs")

@@ -75,6 +75,7 @@ FORMAT_VERSION = 1
 CHUNK = 1 << 16   # directions evaluated per block: bounds eval's memory
 NORMAL_FILE = "normal.exr"
 NORMAL_UNIT_TOL = 1e-3   # |n| - 1 accepted on load (then renormalised)
+MAX_GRID_CELLS = 1 << 20   # a plane or direction grid's side on load: far beyond any fit (paper scale: 4096)
 
 
 def normal_problem(normal: np.ndarray, tol: float = NORMAL_UNIT_TOL) -> str | None:
@@ -91,6 +92,64 @@ def normal_problem(normal: np.ndarray, tol: float = NORMAL_UNIT_TOL) -> str | No
             return (f"{int(bad.sum())} shading normal(s) {what}; first at point {first}: "
                     f"{np.array2string(n[first], precision=4, separator=', ')}")
     return None
+
+
+def _count(value: Any, positive_int: bool) -> bool:
+    """Whether ``value`` is a JSON integer >= 1 (``positive_int``) or a finite number > 0."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return False
+    if positive_int:
+        return isinstance(value, int) and 1 <= value <= MAX_GRID_CELLS
+    return bool(np.isfinite(value)) and value > 0.0
+
+
+def model_grids(file: Path, meta: dict) -> tuple[PlaneGrid, DirectionGrid, DirectionGrid]:
+    """The plane grid and the two direction grids that model.json (``file``, read as ``meta``) describes;
+    InputError naming the key for a missing one or a value that is not a positive finite size (a NaN plane
+    width would place every point off the sample: a black picture)."""
+    fields = (("plane_grid", (("width", False), ("height", False), ("cols", True), ("rows", True))),
+              ("grid", (("n_theta", True), ("n_phi", True))),
+              ("shadowing_grid", (("n_theta", True), ("n_phi", True))))
+    for key, names in fields:
+        record = meta.get(key)
+        if not isinstance(record, dict):
+            raise InputError(file, f"incomplete SVBRDF description: no {key!r} object")
+        for name, integer in names:
+            if not _count(record.get(name), integer):
+                kind = f"an integer from 1 to {MAX_GRID_CELLS}" if integer else "a finite number > 0"
+                raise InputError(file, f"{key}.{name} must be {kind}, found {record.get(name)!r:.40}")
+    return (PlaneGrid.from_dict(meta["plane_grid"]), DirectionGrid.from_dict(meta["grid"]),
+            DirectionGrid.from_dict(meta["shadowing_grid"]))
+
+
+def refuse_bad_values(file: str | Path, what: str, values: np.ndarray, lowest: float | None = None) -> None:
+    """InputError naming ``file`` and the count when ``values`` (any shape, P first) hold NaN or Inf, or values
+    below ``lowest`` (None: any finite value); the first bad one's flat index says where."""
+    values = np.asarray(values)
+    if values.dtype.kind not in "biuf":
+        raise InputError(file, f"{what} has data type {values.dtype}, expected numbers")
+    checks = [("NaN or Inf", ~np.isfinite(values))]
+    if lowest is not None:
+        checks.append((f"below {lowest:g}", np.nan_to_num(values, nan=lowest) < lowest))
+    for problem, bad in checks:
+        if bad.any():
+            first = int(np.flatnonzero(bad)[0])
+            raise InputError(file, f"{int(bad.sum())} {what} value(s) {problem} (first at flat index {first}: "
+                                   f"{float(values.ravel()[first]):.6g})")
+
+
+def refuse_bad_indices(file: str | Path, what: str, index: np.ndarray, count: int, table: str) -> None:
+    """InputError naming ``file`` and the count when ``index`` holds a non-integer or an index outside
+    0 .. ``count`` - 1 (a ``table`` of ``count`` entries): such an index reads past the table, or, negative,
+    silently reads another entry."""
+    index = np.asarray(index)
+    if index.dtype.kind not in "iu":
+        raise InputError(file, f"{what} indices have data type {index.dtype}, expected integers")
+    bad = (index < 0) | (index >= count)
+    if bad.any():
+        first = int(np.flatnonzero(bad)[0])
+        raise InputError(file, f"{int(bad.sum())} {what} index(es) outside the {count} {table} (0 to {count - 1}); "
+                               f"first {int(index.ravel()[first])} at flat index {first}")
 
 
 @dataclass
@@ -143,14 +202,11 @@ class SVBRDF:
         """Read a fitted SVBRDF folder (InputError names the file on a bad one)."""
         path = Path(path)
         meta = read_json(path / "model.json")
+        if not isinstance(meta, dict):
+            raise InputError(path / "model.json", f"expected a JSON object, found {type(meta).__name__}")
         if meta.get("version") != FORMAT_VERSION:
-            raise InputError(path / "model.json", f"unsupported SVBRDF format version {meta.get('version')!r}")
-        try:
-            plane = PlaneGrid.from_dict(meta["plane_grid"])
-            grid = DirectionGrid.from_dict(meta["grid"])
-            sgrid = DirectionGrid.from_dict(meta["shadowing_grid"])
-        except (KeyError, TypeError, ValueError) as exc:
-            raise InputError(path / "model.json", f"incomplete SVBRDF description ({exc})") from None
+            raise InputError(path / "model.json", f"unsupported SVBRDF format version {meta.get('version')!r:.40}")
+        plane, grid, sgrid = model_grids(path / "model.json", meta)
         p = plane.rows * plane.cols
 
         def image(name, channel):
@@ -163,8 +219,11 @@ class SVBRDF:
                                               f"{plane.cols}x{plane.rows}")
             return a.reshape((p,) + a.shape[2:]).astype(np.float64)
 
-        def tensor(name):
-            return read_npy(path / name)
+        def tensor(name, integer=False):
+            a = read_npy(path / name)
+            if a.dtype.kind not in ("iu" if integer else "biuf"):
+                raise InputError(path / name, f"data type {a.dtype}, expected {'integers' if integer else 'numbers'}")
+            return a
 
         eta_channels, _ = read_exr(path / "eta.exr")
         fitted = eta_channels.get("eta_fitted")
@@ -178,16 +237,38 @@ class SVBRDF:
             if problem:
                 raise InputError(path / name, problem)
         try:
-            return cls(plane=plane, grid=grid, kd=image("kd.exr", "RGB"), ks=image("ks.exr", "RGB"),
+            model = cls(plane=plane, grid=grid, kd=image("kd.exr", "RGB"), ks=image("ks.exr", "RGB"),
                        eta=image("eta.exr", "eta"), ndf=tensor("ndf.npy"), area=tensor("projected_area.npy"),
-                       neighbours=tensor("neighbours.npy").astype(np.intp), weights=tensor("weights.npy"),
-                       representatives=tensor("representatives.npy"),
+                       neighbours=tensor("neighbours.npy", True).astype(np.intp), weights=tensor("weights.npy"),
+                       representatives=tensor("representatives.npy", True),
                        eta_fitted=None if fitted is None else fitted.reshape(-1) > 0.5,
                        shadowing_grid=sgrid, info=meta, eta_lo=interval["eta_lo"], eta_hi=interval["eta_hi"],
                        rotation=(tensor("rotation.npy").astype(np.float64) if (path / "rotation.npy").is_file()
                                  else None), normal=normal)
         except ValueError as exc:
             raise InputError(path, f"inconsistent SVBRDF folder ({exc})") from None
+        return model.check_values(path)
+
+    def check_values(self, path: str | Path) -> "SVBRDF":
+        """This model, if every parameter is finite and in range (issue 32 item 8), else InputError naming the
+        file in folder ``path`` and the count of bad values: a NaN kd, a negative ks, a neighbour index outside
+        the representatives' table would otherwise render black, NaN or plausible but wrong pictures. (eta's
+        interval, eta_lo and eta_hi, is a record of the fit, not a parameter of rho: not checked.)"""
+        path = Path(path)
+        maps = (("kd.exr", "kd", self.kd, 0.0), ("ks.exr", "ks", self.ks, 0.0), ("eta.exr", "eta", self.eta, None),
+                ("ndf.npy", "ndf", self.ndf, None), ("projected_area.npy", "projected area", self.area, None),
+                ("weights.npy", "weights", self.weights, None), ("rotation.npy", "rotation", self.rotation, None))
+        for name, what, values, lowest in maps:
+            if values is not None:
+                refuse_bad_values(path / name, what, values, lowest)
+        if (self.eta <= 0.0).any():
+            raise InputError(path / "eta.exr", f"{int((self.eta <= 0.0).sum())} eta value(s) <= 0 (first at point "
+                                               f"{int(np.flatnonzero(self.eta <= 0.0)[0])}); eta is a refraction index")
+        refuse_bad_indices(path / "neighbours.npy", "neighbour", self.neighbours, self.ndf.shape[0], "representatives")
+        if self.representatives is not None:
+            refuse_bad_indices(path / "representatives.npy", "representative", self.representatives, self.n_points,
+                               "points")
+        return self
 
     def save(self, path: str | Path, provenance: dict[str, Any] | None = None) -> None:
         """Write the folder (every file atomically; model.json last)."""

@@ -10,7 +10,7 @@ from typing import Any
 
 import jsonschema
 
-from .errors import InputError
+from .errors import EXCERPT_CHARS, InputError
 
 
 @cache
@@ -27,4 +27,14 @@ def validate(document: Any, schema_name: str, path: str | Path | None, what: str
         err = errors[0]
         where = "/".join(str(p) for p in err.absolute_path) or "(top level)"
         more = f" (and {len(errors) - 1} more problem(s))" if len(errors) > 1 else ""
-        raise InputError(path, f"invalid {what} at '{where}': {err.message}{more}")
+        raise InputError(path, f"invalid {what} at '{where}': {_bounded(err)}{more}")
+
+
+def _bounded(err: jsonschema.ValidationError) -> str:
+    """The error's message with the offending value quoted by at most EXCERPT_CHARS characters of its repr
+    (jsonschema quotes it whole: a file that is not the document expected, e.g. /etc/passwd read as a
+    scene, would be printed; issue 32)."""
+    message, shown = err.message, repr(err.instance)
+    if len(shown) > EXCERPT_CHARS:
+        message = message.replace(shown, shown[:EXCERPT_CHARS] + "...")
+    return message if len(message) <= 4 * EXCERPT_CHARS else message[:4 * EXCERPT_CHARS] + "..."

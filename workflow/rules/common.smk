@@ -9,6 +9,8 @@ import yaml
 from snakemake.exceptions import WorkflowError
 from snakemake.utils import validate
 
+from facetsynth.errors import excerpt
+
 
 
 def scalars(value):
@@ -54,9 +56,54 @@ def apply_preset(config):
     return filled
 
 
+MAX_SCATTER_TILES = 1024
+"""scatter.tiles at most: the DAG grows by 3 jobs per tile and sample, and building it takes ~13 ms a tile
+(measured, one sample: 1 tile 3.4 s, 256 8.4 s, 1024 16 s, 2048 29 s, 4096 66 s; 100000 never finished).
+1024 jobs per stage already split the paper's scale (800 x 800 points: 2500 tiles of 256) into parts of
+2 to 3 tiles: beyond it, parts are empty or hold one tile (docs/decisions.md, issue 32)."""
+
+
+def cross_check(config):
+    """Knobs that each pass the schema but contradict each other: a WorkflowError naming both keys, before
+    any job runs (each would otherwise fail, or silently misbehave, in the stage that reads them, after
+    every stage before it has run)."""
+    def fail(problem):
+        raise WorkflowError(f"config: {problem}")
+
+    params = config["params"]
+    if not params["eta_min"] < params["eta_max"]:
+        fail(f"params.eta_min ({params['eta_min']}) must be less than params.eta_max ({params['eta_max']}): "
+             "the bounds of eta's fit contradict")
+    if not params["eta_min"] <= params["eta_default"] <= params["eta_max"]:
+        fail(f"params.eta_default ({params['eta_default']}) lies outside [params.eta_min, params.eta_max] = "
+             f"[{params['eta_min']}, {params['eta_max']}]: the default eta must be one the fit could reach")
+    cluster = config["cluster"]
+    if not cluster["min_representatives"] <= cluster["max_representatives"]:
+        fail(f"cluster.min_representatives ({cluster['min_representatives']}) exceeds cluster.max_representatives "
+             f"({cluster['max_representatives']}): the range of k scanned is empty")
+    ranges = [("resample.n_theta_range", config["resample"]["n_theta_range"]),
+              ("synthesize.overlap", config["synthesize"]["overlap"])]
+    ranges += [(f"presets.{name}.resample.n_theta_range", preset["resample"]["n_theta_range"])
+               for name, preset in config["presets"].items()]
+    for key, (low, high) in ranges:
+        if not low <= high:
+            fail(f"{key} is [{low}, {high}]: its minimum exceeds its maximum")
+    names = [view["name"] for view in config["validate"]["views"]]
+    twice = sorted({name for name in names if names.count(name) > 1})
+    if twice:
+        fail(f"validate.views: the name {twice[0]!r} is given to {names.count(twice[0])} views: each view's "
+             "outputs are named after it")
+    tiles = config["scatter"]["tiles"]
+    if tiles > MAX_SCATTER_TILES:
+        fail(f"scatter.tiles is {tiles}, more than {MAX_SCATTER_TILES} jobs per stage and sample: the job graph "
+             f"alone would take minutes to hours to build, and every part beyond the capture's tiles of "
+             f"{256} points is empty; use at most {MAX_SCATTER_TILES}")
+
+
 config.update(scalars(config))
 PRESET_KNOBS = apply_preset(config)
 validate(config, "../schemas/config.schema.yaml")
+cross_check(config)
 SCATTER_TILES = config["scatter"]["tiles"]
 
 
@@ -79,10 +126,23 @@ def read_samples(path):
     """The sample sheet as {sample: row}, each row validated against the schema."""
     if not Path(path).is_file():
         raise WorkflowError(f"{path}: sample sheet not found (config key 'samples')")
-    with open(path, newline="") as f:
-        rows = list(csv.DictReader(f, delimiter="\t"))
+    try:
+        with open(path, newline="") as f:
+            reader = csv.DictReader(f, delimiter="\t")
+            rows = [(reader.line_num, row) for row in reader]
+            header = reader.fieldnames or []
+    except (OSError, UnicodeDecodeError, csv.Error) as e:
+        raise WorkflowError(f"{path}: not a readable sample sheet (config key 'samples'): {excerpt(e)}")
+    twice = sorted({name for name in header if header.count(name) > 1})
+    if twice:
+        raise WorkflowError(f"{path} line 1: the column '{excerpt(twice[0])}' is named twice in the header")
     samples = {}
-    for line, row in enumerate(rows, start=2):
+    for line, row in rows:
+        extra = [v for v in row.get(None) or [] if v != ""]
+        if extra:
+            raise WorkflowError(f"{path} line {line}: {len(extra)} field(s) beyond the header's {len(header)} "
+                                f"columns ({', '.join(map(str, header))}), the first '{excerpt(extra[0], 40)}': "
+                                "a tab too many, or a column missing from the header?")
         row = {k: v for k, v in row.items() if k is not None and v not in (None, "")}
         try:
             validate(row, "../schemas/samples.schema.yaml")
@@ -92,6 +152,12 @@ def read_samples(path):
             raise WorkflowError(f"{path} line {line}: sample '{row['sample']}' appears twice")
         if not Path(row["path"]).exists():
             raise WorkflowError(f"{path} line {line}: path '{row['path']}' of sample '{row['sample']}' does not exist")
+        if row["source"] != "import" and Path(row["path"]).is_dir():
+            raise WorkflowError(f"{path} line {line}: path '{row['path']}' of sample '{row['sample']}' is a folder; "
+                                f"a {row['source']} sample's path is a file")
+        if "rig" in row and Path(row["rig"]).is_dir():
+            raise WorkflowError(f"{path} line {line}: rig '{row['rig']}' of sample '{row['sample']}' is a folder, "
+                                "not a rig description file")
         samples[row["sample"]] = row
     if not samples:
         raise WorkflowError(f"{path}: the sample sheet lists no samples")

@@ -71,7 +71,7 @@ from ..ggx import (FIT_ALPHA_RANGE, GltfMaterial, _MomentDictionary, dielectric_
                    roughness_strength)
 from ..microfacet import fresnel
 from ..normals import shading_frames
-from ..outputs import prepare_output_dir
+from ..outputs import output_folder
 from ..plane import PlaneGrid
 
 log = logging.getLogger(__name__)
@@ -530,29 +530,42 @@ def write_gltf(out_dir: Path, material: GltfMaterial, source: str) -> list[str]:
     with atomic_path(out_dir / BIN_NAME, suffix=".bin") as tmp:
         tmp.write_bytes(blob)
     doc = gltf_document(material, factors, len(blob), quad, source)
+    try:
+        text = json.dumps(doc, indent=1, allow_nan=False)      # NaN is not JSON: never written
+    except ValueError:
+        raise InputError(source, "the fitted glTF material holds NaN or Inf values; nothing written") from None
     with atomic_path(out_dir / GLTF_NAME, suffix=".gltf") as tmp:
-        tmp.write_text(json.dumps(doc, indent=1) + "\n")
+        tmp.write_text(text + "\n")
     return [ALL_IMAGES[n] for n in images] + [BIN_NAME, GLTF_NAME]
+
+
+def output_names(model) -> list[str]:
+    """The files :func:`write_gltf` writes for ``model``, in the order they are published (the .gltf last)."""
+    images = list(IMAGES.values()) + ([NORMAL_IMAGE] if getattr(model, "normal", None) is not None else [])
+    return images + [BIN_NAME, GLTF_NAME]
 
 
 def export_gltf(model_dir: str | Path, out_dir: str | Path, *, force: bool = False, weight_quantum: float = 0.01,
                 iterations: int = 12, fresnel_cos_min: float = 0.5) -> dict[str, Any]:
     """Fit the portable glTF material to the SVBRDF in ``model_dir`` and write it to ``out_dir`` (module docstring).
 
-    The output folder follows :func:`facetsynth.outputs.prepare_output_dir` (never overlapping the model; a
-    non-empty folder not made by this command only with ``force``). The written file is read back, checked
-    against the vendored glTF schema (:func:`validate_gltf`) and its textures against the fit. Returns a
+    The output folder follows :func:`facetsynth.outputs.output_folder` (never overlapping the model; a
+    non-empty folder not made by this command only with ``force``; one writer at a time). The written file is
+    read back, checked against the vendored glTF schema (:func:`validate_gltf`) and its textures against the
+    fit before it is published (a failure publishes nothing). Returns a
     summary: ``files`` (paths written), ``fit`` (:func:`fit_material`'s summary), ``round_trip``
     (:func:`round_trip_errors`), ``gltf`` (the .gltf path).
     """
     from . import fitted_svbrdf
     model = fitted_svbrdf(model_dir, "glTF")
-    out = prepare_output_dir(out_dir, "export-gltf", input_dirs=[model_dir], force=force)
-    material, record = fit_material(model, weight_quantum=weight_quantum, iterations=iterations,
-                                    fresnel_cos_min=fresnel_cos_min)
-    names = write_gltf(out, material, source=str(model_dir))
-    validate_gltf(out / GLTF_NAME)
-    read = read_gltf(out / GLTF_NAME)
+    with output_folder(out_dir, "export-gltf", input_dirs=[model_dir], writes=output_names(model),
+                       force=force) as stage:
+        material, record = fit_material(model, weight_quantum=weight_quantum, iterations=iterations,
+                                        fresnel_cos_min=fresnel_cos_min)
+        names = write_gltf(stage, material, source=str(model_dir))
+        validate_gltf(stage / GLTF_NAME)              # checked before it is published
+        read = read_gltf(stage / GLTF_NAME)
+    out = Path(out_dir)
     return {"files": [str(out / n) for n in names], "gltf": str(out / GLTF_NAME), "fit": record["summary"],
             "round_trip": round_trip_errors(material, read)}
 

@@ -33,9 +33,10 @@ from typing import Any
 
 import numpy as np
 
+from ..errors import InputError
 from ..fileio import atomic_path, write_json
 from ..mitsuba_capture import VARIANT
-from ..outputs import prepare_output_dir
+from ..outputs import output_folder
 from ..svbrdf import SVBRDF
 from . import fitted_svbrdf, mitsuba_bsdf, mitsuba_render
 
@@ -146,23 +147,36 @@ def _write_text(path: Path, text: str) -> None:
 def export_mitsuba(model_dir: str | Path, out_dir: str | Path, *, force: bool = False) -> dict[str, Any]:
     """Write the Mitsuba 3 export of the fitted SVBRDF in ``model_dir`` into ``out_dir`` (module docstring).
 
-    The output folder follows :func:`facetsynth.outputs.prepare_output_dir` (never the model folder nor inside
-    it; a non-empty folder not made by this command only with ``force``); every file is written atomically.
+    The output folder follows :func:`facetsynth.outputs.output_folder` (never the model folder nor inside it; a
+    non-empty folder not made by this command only with ``force``; one writer at a time); the files are
+    published together when all are written, export.json last.
     Returns a summary: ``files`` (the paths written), the plane grid, representatives, plugin and variant.
     """
     model_dir = Path(model_dir)
     model = fitted_svbrdf(model_dir, "Mitsuba")
     arrays = model_arrays(model)
-    mitsuba_bsdf.TabulatedSVBRDF(arrays)          # the plugin reads what is written (raises on a mismatch)
-    out = prepare_output_dir(out_dir, COMMAND, input_dirs=[model_dir], force=force)
-    with atomic_path(out / "model.npz", suffix=".npz") as tmp:
-        buffer = io.BytesIO()
-        np.savez_compressed(buffer, **arrays)
-        tmp.write_bytes(buffer.getvalue())
-    _write_text(out / PLUGIN_FILE, Path(mitsuba_bsdf.__file__).read_text())
-    _write_text(out / "scene.xml", scene_xml(model.plane.width, model.plane.height))
-    _write_text(out / "render.py", Path(mitsuba_render.__file__).read_text())
-    summary = {
+    try:
+        mitsuba_bsdf.TabulatedSVBRDF(arrays)      # the plugin reads what is written (raises on a mismatch)
+    except ValueError as exc:
+        raise InputError(model_dir, f"the plugin cannot read this model ({str(exc):.200})") from None
+    with output_folder(out_dir, COMMAND, input_dirs=[model_dir], writes=FILES, force=force) as stage:
+        with atomic_path(stage / "model.npz", suffix=".npz") as tmp:
+            buffer = io.BytesIO()
+            np.savez_compressed(buffer, **arrays)
+            tmp.write_bytes(buffer.getvalue())
+        _write_text(stage / PLUGIN_FILE, Path(mitsuba_bsdf.__file__).read_text())
+        _write_text(stage / "scene.xml", scene_xml(model.plane.width, model.plane.height))
+        _write_text(stage / "render.py", Path(mitsuba_render.__file__).read_text())
+        write_json(stage / "export.json", _summary(model, model_dir))
+    out = Path(out_dir)
+    return dict(_summary(model, model_dir), out=str(out), files=[str(out / name) for name in FILES],
+                next=[f"cd {out} && python render.py --theta 30 --phi 0 --distance 0.3 --out view.exr "
+                      "(Mitsuba 3, scalar_rgb)"])
+
+
+def _summary(model: SVBRDF, model_dir: Path) -> dict[str, Any]:
+    """export.json: what was exported, from where, and how to use it."""
+    return {
         "format": "mitsuba3",
         "plugin": mitsuba_bsdf.PLUGIN_NAME,
         "variant": VARIANT,
@@ -180,7 +194,3 @@ def export_mitsuba(model_dir: str | Path, out_dir: str | Path, *, force: bool = 
                  "python render.py --manifest CAPTURE/manifest.json --frame Q --out frame.exr",
         "files": list(FILES),
     }
-    write_json(out / "export.json", summary)
-    return dict(summary, out=str(out), files=[str(out / name) for name in FILES],
-                next=[f"cd {out} && python render.py --theta 30 --phi 0 --distance 0.3 --out view.exr "
-                      "(Mitsuba 3, scalar_rgb)"])

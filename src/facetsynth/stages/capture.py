@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import manifest as manifest_io
+from .. import plausibility
 from ..errors import InputError
 from ..fileio import atomic_dir, read_exposure
 from ..frames import map_frames
@@ -88,16 +89,33 @@ def inspect_capture(path: str | Path) -> tuple[dict, list[str]]:
     frames (a light that did not fire, or lights nothing the camera sees; the other frames still fit).
     Dark is as ``hdr`` has it: no value of any exposure above the sensor's noise floor (3 read-noise
     sigmas of the manifest's ``noise``, the ``hdr`` default; 0 for noise-free data).
+    Plausibility (:mod:`facetsynth.plausibility`, issue 32; ``hdr`` checks the same): the sample's size
+    against the camera's view of it and the lights' distances against the sample, before any pixel is
+    read; a virtual capture's ``truth/scene``; clipping per frame and over the capture.
     """
     manifest = manifest_io.load(path)
+    source = Path(path) / "manifest.json" if Path(path).is_dir() else Path(path)
+    warnings = plausibility.check_geometry(manifest, source) + plausibility.duplicate_files(manifest)
+    plausibility.check_truth_scene(manifest, source)
+    on_sample = plausibility.sample_pixels(manifest)
     shape = (manifest["camera"]["height"], manifest["camera"]["width"], 3)
     floor = SensorModel(read_sigma=manifest.get("noise", {}).get("read_sigma", 0.0)).noise_floor
-    per_frame = map_frames(lambda frame: [_read_exposure(e["file"], shape, floor) for e in frame["exposures"]],
-                           manifest["frames"], CHECK_THREADS, "check")
+
+    def read_frame(frame: dict) -> tuple[list[ExposureStats], int]:
+        """A frame's exposures' stats, and its sample pixels clipped in every exposure."""
+        stats, clipped = [], None
+        for e in frame["exposures"]:
+            s, c = _read_exposure(e["file"], shape, floor, manifest)
+            stats.append(s)
+            clipped = c if clipped is None else clipped & c
+        return stats, int(np.count_nonzero(clipped.any(axis=-1) & on_sample))
+
+    read = map_frames(read_frame, manifest["frames"], CHECK_THREADS, "check")
+    per_frame = [stats for stats, _ in read]
     exposures = [stats for frame in per_frame for stats in frame]
     _refuse_nonfinite(exposures)
     _refuse_mixed_kinds(exposures, manifest["_dir"])
-    warnings = []
+    warnings += plausibility.check_clipping([c for _, c in read], int(on_sample.sum()), manifest, source)
     negative = [s for s in exposures if s.negative]
     if negative:
         warnings.append(f"{sum(s.negative for s in negative)} negative value(s) in {len(negative)} of "
@@ -137,16 +155,25 @@ class ExposureStats:
     lit: bool                                # some value above the noise floor
 
 
-def _read_exposure(file: str, shape: tuple[int, int, int], floor: float) -> ExposureStats:
+def _read_exposure(file: str, shape: tuple[int, int, int], floor: float,
+                   manifest: dict) -> tuple[ExposureStats, np.ndarray]:
     """Read one exposure as ``hdr`` does; count its non-finite pixels and negative values, and whether some
-    value is above the noise ``floor``."""
+    value is above the noise ``floor``; with its (H, W, 3) clipped values (:func:`plausibility.clip_level`).
+    A file of another size than the camera's is refused from its header, before its pixels are read."""
     try:
-        rgb, bits = read_exposure(file)
+        rgb, bits = read_exposure(file, shape[:2])
     except InputError as exc:
+        if exc.problem.startswith("frame is "):
+            raise InputError(file, exc.problem.split(" (the file's header")[0]) from None
         raise InputError(file, f"unreadable frame: {exc.problem}") from None
     if rgb.shape != shape:
         raise InputError(file, f"frame is {rgb.shape[1]}x{rgb.shape[0]}, the manifest's camera is "
                                f"{shape[1]}x{shape[0]}")
+    return _stats(file, rgb, bits, floor), ~(rgb < plausibility.clip_level(manifest, bits))
+
+
+def _stats(file: str, rgb: np.ndarray, bits: int | None, floor: float) -> ExposureStats:
+    """One exposure's :class:`ExposureStats`."""
     lowest, highest = float(rgb.min()), float(rgb.max())   # NaN if any pixel is NaN: the fast path is all finite
     if np.isfinite(lowest) and np.isfinite(highest):
         negative = 0 if lowest >= 0 else int((rgb < 0).sum())

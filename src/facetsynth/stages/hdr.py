@@ -28,6 +28,7 @@ from typing import NamedTuple
 import numpy as np
 
 from .. import manifest as manifest_io
+from .. import plausibility
 from ..errors import InputError
 from ..fileio import atomic_dir, exposure_bits, file_key, read_codes, read_exr, read_rgb, write_exr, write_json
 from ..frames import map_frames
@@ -79,6 +80,11 @@ def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threa
     capture = manifest_io.load(inputs.capture)
     manifest_path = Path(capture["_dir"]) / "manifest.json"
     _check_lights(capture, manifest_path)
+    # The plausibility checks of ``facetsynth check`` (:mod:`facetsynth.plausibility`), for a capture that
+    # skipped it: refused here, before it becomes a model; its warnings logged and kept in the metrics.
+    warnings = plausibility.check_geometry(capture, manifest_path) + plausibility.duplicate_files(capture)
+    plausibility.check_truth_scene(capture, manifest_path)
+    on_sample = plausibility.sample_pixels(capture)
     noise = capture.get("noise", {})
     sensor = SensorModel(saturation=capture.get("saturation"), read_sigma=noise.get("read_sigma", 0.0),
                          shot_gain=noise.get("shot_gain", 0.0), floor_sigmas=settings.floor_sigmas,
@@ -130,7 +136,8 @@ def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threa
                 out_frame["truth"] = {"radiance": os.path.relpath(frame["truth"]["radiance"], manifest_out.parent)}
             # Dark: no pixel above the noise floor in the longest exposure (0 for a noise-free HDR import).
             dark = not (saturated.any() or (merged * times.max() > sensor.noise_floor).any())
-            return Merged(out_frame, int(saturated.sum()), negatives, errors, dark)
+            return Merged(out_frame, int(saturated.sum()), negatives, errors, dark,
+                          int(np.count_nonzero(saturated & on_sample)))
 
         per_frame = map_frames(merge_frame, list(enumerate(capture["frames"])), threads, "hdr")
         dark = [q for q, m in enumerate(per_frame) if m.dark]
@@ -139,6 +146,8 @@ def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threa
                                             f"floor, {sensor.noise_floor:g}): nothing was measured; check that "
                                             "the lights fire, the lens is uncovered and the exposures are long "
                                             "enough")
+        warnings += plausibility.check_clipping([m.clipped_on_sample for m in per_frame], int(on_sample.sum()),
+                                                capture, manifest_path, "hdr")
     frames = [m.frame for m in per_frame]
     saturated_total = sum(m.saturated for m in per_frame)
     negatives = Negatives.total([m.negatives for m in per_frame])
@@ -154,6 +163,10 @@ def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threa
 
     metrics = {"ground_truth": bool(errors), "frames": len(frames), "saturated_pixels": saturated_total,
                "negative_values": negatives.count, "dark_frames": len(dark)}
+    if warnings:
+        metrics["warnings"] = warnings
+        for warning in warnings:
+            log.warning("%s: %s", manifest_path, warning)
     if dark:
         flag_degenerate(metrics, f"{len(dark)} of {len(frames)} frames are dark (no pixel above the noise floor; "
                                  f"the first: frame {dark[0]}, {capture['frames'][dark[0]]['exposures'][0]['file']}): "
@@ -192,12 +205,14 @@ def _check_lights(capture: dict, manifest_path: Path) -> None:
 
 class Merged(NamedTuple):
     """One merged frame: its manifest entry, saturated pixel count, its exposures' negative values, its
-    relative errors against the truth (None without truth) and whether it is dark."""
+    relative errors against the truth (None without truth), whether it is dark, and its saturated pixels
+    among those that see the sample (:func:`facetsynth.plausibility.check_clipping`)."""
     frame: dict
     saturated: int
     negatives: "Negatives"
     errors: np.ndarray | None
     dark: bool
+    clipped_on_sample: int = 0
 
 
 @dataclass(frozen=True)
@@ -240,8 +255,9 @@ def _read_merged(path: Path) -> tuple[np.ndarray, np.ndarray, Negatives] | None:
 
 
 def _read_exposure(file: str, shape: tuple[int, ...], response: Response | None = None) -> np.ndarray:
-    """One exposure's linear values: an EXR's as stored, an 8-bit image's codes through ``response``."""
-    image = read_rgb(file) if response is None else read_codes(file)
+    """One exposure's linear values: an EXR's as stored, an 8-bit image's codes through ``response``. A file
+    whose header declares another size than the camera's is refused before its pixels are read."""
+    image = read_rgb(file, shape=shape[:2]) if response is None else read_codes(file, shape[:2])
     if image.shape != shape:
         raise InputError(file, f"frame is {image.shape[1]}x{image.shape[0]}, the manifest's camera is "
                                f"{shape[1]}x{shape[0]}")
@@ -292,7 +308,7 @@ def _recover_response(capture: dict, shape: tuple[int, ...], manifest_path: Path
     chosen = [frames[i] for i in np.unique(np.linspace(0, len(frames) - 1, RESPONSE_FRAMES).round().astype(int))]
     stacks = []
     for frame in chosen:
-        codes = [read_codes(e["file"]) for e in frame["exposures"]]
+        codes = [read_codes(e["file"], shape[:2]) for e in frame["exposures"]]
         for e, c in zip(frame["exposures"], codes):
             if c.shape != shape:
                 raise InputError(e["file"], f"frame is {c.shape[1]}x{c.shape[0]}, the manifest's camera is "

@@ -19,6 +19,7 @@ from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from ..errors import InputError
 from ..fileio import atomic_dir, read_npy, write_json
@@ -29,7 +30,8 @@ from ..microfacet import fresnel, half_vector
 from ..cluster import material_groups, relative_rotation
 from ..synthesis import pairwise_distance, rotate_tuple
 from ..params import normalise, projected_area
-from ..refine import NormalSums, best_turns, parabola_minimum, radiance_weights, solve, stretch
+from ..refine import (NormalSums, add_table_normal_equations, best_turns, parabola_minimum, radiance_weights, solve,
+                      solve_table, stretch)
 
 from ..svbrdf import SVBRDF
 from .common import (TILE_POINTS, RectifiedCapture, RuleFiles, StageSettings, analytic_points, median_rel_error,
@@ -62,6 +64,9 @@ class Outputs(RuleFiles):
 class Settings(StageSettings):
     """The stage's knobs: config ``refine`` (workflow/schemas/config.schema.yaml)."""
     ridge: float = 1e-3               # weight of the pipeline's kd, ks as a prior, relative to the point's samples
+    ndf_ridge: float = 0.01           # each NDF table fitted to its points' samples; the completed table weighs as
+                                      # this share of a cell's samples (0: the tables as synthesised)
+    ndf_points: int = 4096            # points (evenly strided) of a table that fit it
     eta: tuple = (1.2, 1.4, 1.7, 2.1, 2.7, 3.5, 5.0, 8.0)   # the etas tried per material; (): none
     stretch: tuple = (0.6, 0.7, 0.8, 0.9, 1.0, 1.1)   # the NDF stretches tried per material; (): none
     material_points: int = 300        # points (evenly strided) of a material that choose its eta and stretch
@@ -272,6 +277,17 @@ def with_stretch(model: SVBRDF, representatives: np.ndarray, points: np.ndarray,
     return stretched(model, factors)
 
 
+def half_and_denominator(model: SVBRDF, index: np.ndarray, pp: np.ndarray, i: np.ndarray,
+                         views: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The half vectors h (S, 3) of samples (:func:`samples`: rows ``pp`` of ``index``, lights ``i``, the
+    points' ``views``) and eq. 6's F(c) / (4 A(i) A(o)) (S,): the specular factor without ks and D, as
+    SVBRDF.specular_terms forms it (c = the mean of |i.h| and |o.h|)."""
+    at, o = index[pp], views[pp]
+    h = half_vector(i, o)
+    c = 0.5 * (np.abs(np.sum(i * h, -1)) + np.abs(np.sum(o * h, -1)))
+    return h, fresnel(c, model.eta[at]) / (4.0 * model.area_at(at, i) * model.area_at(index, views)[pp])
+
+
 def choose_turns(model: SVBRDF, capture: RectifiedCapture, specular, valid, settings: Settings,
                  threads: int = 1, points: np.ndarray | None = None) -> tuple[SVBRDF, dict]:
     """Each point's NDF as the one representative, turned by whole sectors within ``turn_window_deg``, that
@@ -298,11 +314,8 @@ def choose_turns(model: SVBRDF, capture: RectifiedCapture, specular, valid, sett
         pp, _, i, u, rho_s, views = samples(capture, specular, valid, index)
         if pp.size == 0:
             return
-        at, o = index[pp], views[pp]
-        h = half_vector(i, o)
-        c = 0.5 * (np.abs(np.sum(i * h, -1)) + np.abs(np.sum(o * h, -1)))     # as SVBRDF.specular_terms
-        area_o = model.area_at(index, views)
-        denom = fresnel(c, model.eta[at]) / (4.0 * model.area_at(at, i) * area_o[pp])
+        at = index[pp]
+        h, denom = half_and_denominator(model, index, pp, i, views)
         r, u = rho_s.mean(axis=-1), u.mean(axis=-1)
         g0 = model.ndf_at(at, h) * denom
         ugr, ugg = (np.bincount(pp, v, minlength=index.size) for v in (u * g0 * r, u * g0 * g0))
@@ -341,16 +354,40 @@ def fit(model: SVBRDF, capture: RectifiedCapture, specular, valid, settings: Set
         threads: int = 1) -> tuple[SVBRDF, dict]:
     """The pipeline's model made to reproduce its samples, in this order: one NDF per material
     (:func:`share_representatives`); eta, then the NDF's stretch, per material (:func:`choose_per_material`);
-    each point's NDF turn (:func:`choose_turns`); kd and ks per point (:func:`facetsynth.refine.solve`).
+    each point's NDF turn (:func:`choose_turns`); every table that points use alone, fitted to their samples
+    (:func:`refit_tables`), and each point's turn again against them; kd and ks per point
+    (:func:`facetsynth.refine.solve`).
     Returns the refined model and the fit's figures."""
     t0 = time.perf_counter()
-    n = capture.n_points
     start = model
     model, shared = share_representatives(model, capture, specular, valid, settings)
     model, etas = choose_per_material(model, capture, specular, valid, settings, "eta", settings.eta, with_eta)
     model, stretches = choose_per_material(model, capture, specular, valid, settings, "stretch", settings.stretch,
                                            with_stretch)
     model, turns = choose_turns(model, capture, specular, valid, settings, threads)
+    model, tables = refit_tables(model, capture, specular, valid, settings)
+    if tables:      # the turns again, against the tables the samples made (ggx-tiles' held-out lights 0.071 -> 0.064)
+        model, turns["after_tables"] = choose_turns(model, capture, specular, valid, settings, threads)
+    a, b, fitted = kd_ks(model, capture, specular, valid, settings, threads)
+    a0, b0 = model.kd / np.pi, model.ks
+    bad = ~(np.isfinite(a).all(axis=1) & np.isfinite(b).all(axis=1))   # never seen; never written either
+    if bad.any():
+        log.warning("%d point(s) with a non-finite kd or ks fit keep the pipeline's", int(bad.sum()))
+        a[bad], b[bad] = a0[bad], b0[bad]
+    refined = replace(model, kd=np.pi * a, ks=b)
+    figures = {**{f"fitting_samples_rel_l2_{when}": samples_rel_l2(m, capture, specular, valid)
+                  for when, m in (("before", start), ("after", refined))},
+               "fitting_samples_points": FIGURE_POINTS, "points_fitted": int(fitted.sum()), "ridge": settings.ridge,
+               "shared": shared, "eta": etas, "stretch": stretches, "turns": turns, "tables": tables,
+               "seconds": round(time.perf_counter() - t0, 2)}
+    return refined, figures
+
+
+def kd_ks(model: SVBRDF, capture: RectifiedCapture, specular, valid, settings: Settings,
+          threads: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """kd/pi and ks per point (P, 3) each (:func:`facetsynth.refine.solve`, the model's own as the prior), and
+    (P,) whether the point had samples."""
+    n = capture.n_points
     a0, b0 = model.kd / np.pi, model.ks
     a, b = a0.copy(), b0.copy()
     fitted = np.zeros(n, bool)
@@ -361,17 +398,49 @@ def fit(model: SVBRDF, capture: RectifiedCapture, specular, valid, settings: Set
         fitted[tile] = sums.u.sum(axis=1) > 0
 
     map_frames(tile_fit, list(tiles(n)), threads, "refine: kd, ks per point", unit="tile")
-    bad = ~(np.isfinite(a).all(axis=1) & np.isfinite(b).all(axis=1))   # never seen; never written either
-    if bad.any():
-        log.warning("%d point(s) with a non-finite kd or ks fit keep the pipeline's", int(bad.sum()))
-        a[bad], b[bad] = a0[bad], b0[bad]
-    refined = replace(model, kd=np.pi * a, ks=b)
-    figures = {**{f"fitting_samples_rel_l2_{when}": samples_rel_l2(m, capture, specular, valid)
-                  for when, m in (("before", start), ("after", refined))},
-               "fitting_samples_points": FIGURE_POINTS, "points_fitted": int(fitted.sum()), "ridge": settings.ridge,
-               "shared": shared, "eta": etas, "stretch": stretches, "turns": turns,
-               "seconds": round(time.perf_counter() - t0, 2)}
-    return refined, figures
+    return a, b, fitted
+
+
+def refit_tables(model: SVBRDF, capture: RectifiedCapture, specular, valid,
+                 settings: Settings) -> tuple[SVBRDF, list[dict]]:
+    """Every NDF table that points use alone (eq. 18 weight 1, after :func:`share_representatives` and
+    :func:`choose_turns`: one per material) fitted to the samples of up to ``settings.ndf_points`` of them
+    (evenly strided), each sample read in its point's turned frame, with the points' kd, ks (fitted to their
+    samples first, :func:`facetsynth.refine.solve`), eta and A(k) fixed
+    (:func:`facetsynth.refine.add_table_normal_equations`, :func:`facetsynth.refine.solve_table`: the
+    completed table is the prior where the samples say little); renormalised, and A(k) made anew. One
+    point's samples leave gaps between its lights' half vectors, which synthesis filled by interpolation;
+    the points of a table turn it, so together they measure it densely (issue 29: the held-out lights)."""
+    if settings.ndf_ridge <= 0:
+        return model, []
+    grid, n = model.grid, capture.n_points
+    n_cells = grid.n_theta * grid.n_phi
+    rotation = np.zeros(n) if model.rotation is None else model.rotation.astype(float)
+    alone = model.weights.max(axis=1) >= 1.0
+    table_of = model.neighbours[np.arange(n), np.argmax(model.weights, axis=1)]
+    ndf, area = model.ndf.copy(), model.area.copy()
+    records = []
+    for k in np.unique(table_of[alone & capture.visible]):
+        points = np.flatnonzero(alone & capture.visible & (table_of == k))
+        index = strided(points, settings.ndf_points)
+        m, v = np.zeros((n_cells, n_cells)), np.zeros(n_cells)
+        for tile in tqdm(list(tiles(index.size)), desc=f"refine: NDF table {k}", unit="tile"):
+            idx = index[tile]
+            a, b = solve(point_sums(model, capture, specular, valid, idx), model.kd[idx] / np.pi, model.ks[idx],
+                         settings.ridge)
+            pp, _, i, u, rho_s, views = samples(capture, specular, valid, idx)
+            at = idx[pp]
+            h, denom = half_and_denominator(model, idx, pp, i, views)
+            look = grid.bilinear(turn(h, rotation[at]))
+            r = rho_s + model.kd[at] / np.pi - a[pp]      # the samples' rho (point_sums' y) less kd/pi
+            add_table_normal_equations(m, v, look.cells.T, look.weights.T, b[pp] * denom[:, None], r, u)
+        table = solve_table(m, v, model.ndf[k].astype(float).ravel(), settings.ndf_ridge).reshape(grid.shape)
+        normalised, _ = normalise(table[None], grid)
+        ndf[k] = normalised[0]
+        area[k] = projected_area(normalised, grid, model.shadowing_grid)[0]
+        records.append({"table": int(k), "points": int(points.size), "fitted_on": int(index.size)})
+        log.info("NDF table %d fitted to the samples of %d of its %d points", k, index.size, points.size)
+    return replace(model, ndf=ndf, area=area), records
 
 
 def samples_rel_l2(model: SVBRDF, capture: RectifiedCapture, specular, valid) -> float | None:

@@ -6,7 +6,7 @@ Every reader returns the BRDF evaluated on the UTIA grid
 :class:`facetsynth.errors.InputError` naming the file and the problem:
 also bad *values*, named by field with counts (NaN or Inf anywhere; negative
 values beyond measurement noise, :data:`NOISE_FRACTION`; no positive value,
-which would fit a zero model "perfectly").
+which would fit a zero model "perfectly"; a reflectance above :data:`MAX_BRDF`).
 
 Formats
 -------
@@ -54,6 +54,22 @@ is not noise but broken data (a sign error, a wrong scale, a wrong field).
 """
 
 
+MAX_BRDF = 1e6
+"""The largest BRDF value (1/sr) a file may hold. The largest in the measured files here: 1166 (RGL
+cg_sunflower, on the UTIA grid; the others 0.8 to 197); a mirror-like peak 0.05 deg wide reaches
+1 / (pi (0.05 deg)^2) = 4e5. Beyond 1e6 a value is a wrong scale or a wrong field, not a reflectance:
+a UTIA file of 1e300 "fitted perfectly" (Delta E 0, 100 dB) in float arithmetic that had overflowed."""
+
+
+def _check_scale(path, field, arr):
+    """``arr``, or InputError naming ``field`` and counting its values above :data:`MAX_BRDF`."""
+    big = int(np.count_nonzero(arr > MAX_BRDF))
+    if big:
+        raise InputError(path, f"field {field!r}: {big} value(s) of {arr.size} above {MAX_BRDF:g} 1/sr (the largest "
+                               f"{float(arr.max()):.3g}): not a reflectance (a wrong scale or a wrong field?)")
+    return arr
+
+
 def _check_finite(path, field, arr):
     """``arr``, or InputError naming ``field`` and counting its NaN or Inf values."""
     bad = int(np.count_nonzero(~np.isfinite(arr)))
@@ -69,6 +85,8 @@ def _check_values(path, field, arr, noise=False):
     while they stay within :data:`NOISE_FRACTION` of the largest value.
     """
     _check_finite(path, field, arr)
+    if noise:                       # reflectance: a scale no measurement has
+        _check_scale(path, field, arr)
     neg = int(np.count_nonzero(arr < 0))
     if not neg:
         return arr
@@ -412,6 +430,7 @@ def read_merl_table(path):
     t = np.frombuffer(raw, "<f8", count=n, offset=12).reshape(3, *dims) * _MERL_SCALE[:, None, None, None]
     # negative entries are MERL's own "not measured" marker (merl_eval reads them as 0); NaN or Inf are not
     _check_finite(p, "rgb", t)
+    _check_scale(p, "rgb", t)
     if not np.any(t > 0):
         raise InputError(p, f"field 'rgb': no positive value; all {t.size} entries are 0 or negative "
                             "(MERL's 'not measured' marker)")
