@@ -217,4 +217,5 @@ def solve_table(m: np.ndarray, v: np.ndarray, prior: np.ndarray, ridge: float) -
     lam = ridge * (diag + floor)
     a = m + np.diag(lam)
     b = v + lam * prior
-    return np.clip(np.linalg.solve(a, b), 0.0, None)
+    table = np.linalg.solve(a, b)
+    return np.clip(np.where(np.isfinite(table), table, prior), 0.0, None)   # a non-finite cell keeps the prior
