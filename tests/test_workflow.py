@@ -157,10 +157,15 @@ def test_noise_free_demo_predicts_held_out_views_and_fits_stencils(demo_run):
     # 0.27 since issue 29's refine (one NDF per material, turned point by point): the BIC keeps a second mode on
     # more clusters, while the Delta E against the truth improved (stencil 2.01 -> 1.93, the SVBRDF's own
     # 0.60 -> 0.46, noise-free)
-    assert stencil["mode_count_accuracy"] >= 0.25
-    truth = stencil["vs_truth"]                              # measured 1.93 / 2.47 / 0.46 noise-free (2.01 / 2.95 / 0.60)
-    assert truth["stencil"]["delta_e_median"] <= 0.8 * truth["kurt"]["delta_e_median"] <= 2.5
-    assert truth["svbrdf"]["delta_e_median"] <= 0.8
+    # 0.91 since refine fits the NDF tables to the samples (2026-12-05): the fitted lobes lost the side lobes
+    assert stencil["mode_count_accuracy"] >= 0.8
+    # measured stencil / Kurt / SVBRDF against the truth, noise-free: 1.96 / 2.40 / 0.25 since the tables are fitted
+    # to the samples (1.93 / 2.47 / 0.46 before; 2.01 / 2.95 / 0.60 before issue 29's refine): the SVBRDF halved
+    # its error and Kurt's fit to it improved; the stencil is at its model's limit (paper 000: one lobe shape)
+    truth = stencil["vs_truth"]
+    assert truth["stencil"]["delta_e_median"] <= min(2.1, 0.85 * truth["kurt"]["delta_e_median"])
+    assert truth["kurt"]["delta_e_median"] <= 2.6
+    assert truth["svbrdf"]["delta_e_median"] <= 0.3
     assert stencil["phi_a_error_deg_median"] <= 4.0
     models = json.loads((demo_run / "results/demo/stencil_fit/models/stencil.json").read_text())["clusters"]
     assert len(list((demo_run / "results/demo/stencil_fit/models/shaders").glob("*.brdf"))) == len(models)
