@@ -84,7 +84,12 @@ def point_sums(model: SVBRDF, capture: RectifiedCapture, specular, valid, index:
     if index.size > TILE_POINTS:
         parts = [point_sums(model, capture, specular, valid, index[t]) for t in tiles(index.size)]
         return NormalSums(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(NormalSums)))
-    pp, ff, wi, u, rho_s, views = samples(capture, specular, valid, index)
+    pp, _, wi, u, rho_s, views = samples(capture, specular, valid, index)
+    return sums_of(model, index, pp, wi, u, rho_s, views)
+
+
+def sums_of(model: SVBRDF, index: np.ndarray, pp, wi, u, rho_s, views) -> NormalSums:
+    """:func:`point_sums` of samples already gathered (:func:`samples`' rows ``pp`` of ``index``, ...)."""
     at = index[pp]
     area_o = model.area_at(index, views)
     spec, c = model.specular_terms(at, wi, views[pp], area_o[pp])
@@ -426,9 +431,9 @@ def refit_tables(model: SVBRDF, capture: RectifiedCapture, specular, valid,
         m, v = np.zeros((n_cells, n_cells)), np.zeros(n_cells)
         for tile in tqdm(list(tiles(index.size)), desc=f"refine: NDF table {k}", unit="tile"):
             idx = index[tile]
-            a, b = solve(point_sums(model, capture, specular, valid, idx), model.kd[idx] / np.pi, model.ks[idx],
-                         settings.ridge)
             pp, _, i, u, rho_s, views = samples(capture, specular, valid, idx)
+            a, b = solve(sums_of(model, idx, pp, i, u, rho_s, views), model.kd[idx] / np.pi, model.ks[idx],
+                         settings.ridge)
             at = idx[pp]
             h, denom = half_and_denominator(model, idx, pp, i, views)
             look = grid.bilinear(turn(h, rotation[at]))
