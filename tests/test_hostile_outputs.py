@@ -290,13 +290,19 @@ def test_a_corrupt_model_is_refused_naming_the_file_and_the_count(work, capsys, 
     """Reproduced: NaN kd or weights, a negative kd, an Inf ks, a NaN plane width rendered black, zero or NaN
     pictures (and NaN in the glTF) with exit 0; a neighbour index out of range was an IndexError traceback,
     a negative one a plausible wrong picture. Now every command refuses the model in one line."""
-    corrupt, text = CORRUPTIONS[corruption]
-    corrupt(work / "svbrdf")
-    args = COMMANDS[command].format(m=work / "svbrdf", w=work).split()
+    _refused(work / "svbrdf", CORRUPTIONS[corruption], command, capsys)
+    assert not (work / "out").exists() and not (work / "out.png").exists()
+
+
+def _refused(model, corruption, command, capsys):
+    """``command`` (a COMMANDS key) on the ``model`` folder, corrupted by ``corruption`` (its edit, the error's
+    text after the folder), exits 1 with that one line."""
+    corrupt, text = corruption
+    corrupt(model)
+    args = COMMANDS[command].format(m=model, w=model.parent).split()
     rc, err = run(args, capsys)
     assert rc == 1
-    one_line(err, args[0], f"{work / 'svbrdf'}/{text}")
-    assert not (work / "out").exists() and not (work / "out.png").exists()
+    one_line(err, args[0], f"{model}/{text}")
 
 
 WARD_CORRUPTIONS = {
@@ -314,12 +320,7 @@ WARD_CORRUPTIONS = {
 @pytest.mark.parametrize("command", ["render", "predict"])
 @pytest.mark.parametrize("corruption", WARD_CORRUPTIONS)
 def test_a_corrupt_ward_baseline_is_refused_too(work, capsys, corruption, command):
-    corrupt, text = WARD_CORRUPTIONS[corruption]
-    corrupt(work / "ward")
-    args = COMMANDS[command].format(m=work / "ward", w=work).split()
-    rc, err = run(args, capsys)
-    assert rc == 1
-    one_line(err, args[0], f"{work / 'ward'}/{text}")
+    _refused(work / "ward", WARD_CORRUPTIONS[corruption], command, capsys)
 
 
 def test_the_gltf_never_holds_nan_even_past_the_loader(work, capsys, monkeypatch):
