@@ -287,7 +287,7 @@ def test_stage_without_heldout_truth_writes_the_fit_record(exported, tmp_path):
 
 def test_demo_export_metrics(demo_run):
     """The noise-free demo (native 168 x 168): the portable material on the held-out views beside the full SVBRDF.
-    Measured 2026-12-03 (fresnel_cos_min 0.5): see the bounds' comments."""
+    Measured 2026-12-05 (fresnel_cos_min 0.5, refine fitting the NDF tables): see the bounds' comments."""
     m = json.loads((demo_run / "results/demo/export/metrics.json").read_text())
     folder = demo_run / "results/demo/export/gltf"
     validate_gltf(folder / GLTF_NAME)
@@ -295,10 +295,12 @@ def test_demo_export_metrics(demo_run):
     assert set(m["views"]) == {"paper", "theta30"}
     for view in m["views"].values():
         assert np.isfinite(view["portable_rel_l2"]) and view["full_rel_l2"] is not None
-    # measured: portable 0.0971 / 0.0840 (paper / theta30), full 0.0983 / 0.0727: mean 0.0906 against 0.0855
-    assert m["heldout_portable_rel_l2"] <= 0.10
-    assert abs(m["heldout_loss_rel_l2"]) <= 0.012
-    assert all(abs(v["loss_rel_l2"]) <= 0.02 for v in m["views"].values())
+    # measured: portable 0.0743 / 0.0777 (paper / theta30), full 0.0639 / 0.0560: mean 0.0760 against 0.0600.
+    # Since refine fits the NDF tables to the samples (issue 29) the full SVBRDF gained 0.026 and the portable
+    # one-lobe material, bounded by its family, 0.010: the loss grew from 0.005 to 0.015-0.016 (CI / here).
+    assert m["heldout_portable_rel_l2"] <= 0.085
+    assert abs(m["heldout_loss_rel_l2"]) <= 0.02
+    assert all(abs(v["loss_rel_l2"]) <= 0.026 for v in m["views"].values())
     assert m["round_trip"]["roughness"] <= 0.5 / 255 + 1e-9
 
 
