@@ -1,6 +1,7 @@
 """docs/images/overview.png, the README's picture: python docs/images/overview.py results/demo (after make run)."""
 
 import sys
+import tempfile
 from pathlib import Path
 
 import matplotlib
@@ -21,8 +22,9 @@ captured = [read_rgb(frames[q]) for q in picked]
 model = SVBRDF.load(sample / "svbrdf")
 shape = (model.plane.rows, model.plane.cols, 3)
 labels = np.load(sample / "cluster/labels.npy").reshape(shape[:2])
-render_preview(sample / "svbrdf", "/tmp/overview-preview.exr", PreviewSettings(theta_deg=45, phi_deg=-30, size=400))
-preview = read_rgb("/tmp/overview-preview.exr")
+with tempfile.TemporaryDirectory() as scratch:      # render never replaces a file it did not write
+    render_preview(sample / "svbrdf", Path(scratch) / "preview.exr", PreviewSettings(theta_deg=45, phi_deg=-30, size=400))
+    preview = read_rgb(Path(scratch) / "preview.exr")
 
 panels = [(display_encode(c * exposure_scale(c, c.max(axis=-1) > 0, None)), f"captured frame {q} of {len(frames)}")
           for q, c in zip(picked, captured)]
