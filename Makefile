@@ -1,7 +1,7 @@
 # Two commands for a fresh machine with Python 3.11:
 #   make run   - set up .venv, install facetsynth, run the workflow on the demo sample
 #   make test  - set up .venv, install facetsynth with test extras, run the test suite
-#   make lint  - ruff (src, tests, scripts), snakefmt --check (rules), snakemake --lint read by its text (.ci/lint)
+#   make lint  - ruff (src, tests, scripts), snakefmt --check (Snakefile, rules), snakemake --lint by text (.ci/lint)
 #   make test-scenes - the slow whole-workflow tests: the scenes of issue 13 at native resolution, issue 4's
 #                synthesis scenes, the demo with its report and exports, the Mitsuba copper at 480 lights
 #                (about 27 min; CI runs them after make test)

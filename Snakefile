@@ -28,6 +28,6 @@ include: "workflow/rules/report.smk"
 
 
 rule all:
+    default_target: True
     input:
         [path for sample in MODEL_SAMPLES for path in final_outputs(sample)],
-    default_target: True

@@ -5,26 +5,10 @@
 # A virtual rig renders its targets (rule calibration_targets); for a real rig, photograph them into
 # results/calibration/{rig}/targets/ in the layout of facetsynth.calibration (its docstring).
 
-from dataclasses import fields as _fields
-
 from facetsynth.stages.calibrate import CalibrateSettings, TargetSettings
-from facetsynth.virtual_rig import VirtualRig
 
 
-def calibration_params(settings):
-    """A settings dataclass's fields from config section 'calibration', its defaults for keys left out."""
-    return {f.name: (config.get("calibration") or {}).get(f.name, f.default) for f in _fields(settings)}
-
-
-def calibration_rig(wildcards):
-    """The virtual rig description the targets are rendered from; none for a real rig (its targets are photos:
-    the job then says where to put them)."""
-    path = f"rig/descriptions/{wildcards.rig}.yaml"
-    try:
-        VirtualRig.load(path)
-    except Exception:
-        return []
-    return [path]
+include: "calibrate_common.smk"
 
 
 rule calibration_targets:
@@ -32,11 +16,6 @@ rule calibration_targets:
         calibration_rig,
     output:
         directory("results/calibration/{rig}/targets"),
-    params:
-        rig="rig/descriptions/{rig}.yaml",
-        seed=config["seed"],
-        noise=config["virtual"]["noise"],
-        **calibration_params(TargetSettings),
     log:
         "results/calibration/{rig}/logs/calibration_targets.log",
     benchmark:
@@ -44,6 +23,11 @@ rule calibration_targets:
     threads: 1
     resources:
         mem_mb=1500,
+    params:
+        **calibration_params(TargetSettings),
+        rig="rig/descriptions/{rig}.yaml",
+        seed=config["seed"],
+        noise=config["virtual"]["noise"],
     script:
         "../scripts/calibrate_targets.py"
 
@@ -53,8 +37,6 @@ rule calibrate:
         targets="results/calibration/{rig}/targets",
     output:
         "results/calibration/{rig}/calibration.json",
-    params:
-        **calibration_params(CalibrateSettings),
     log:
         "results/calibration/{rig}/logs/calibrate.log",
     benchmark:
@@ -62,5 +44,7 @@ rule calibrate:
     threads: 1
     resources:
         mem_mb=1500,
+    params:
+        **calibration_params(CalibrateSettings),
     script:
         "../scripts/calibrate_fit.py"

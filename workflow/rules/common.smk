@@ -1,5 +1,7 @@
 # Configuration and sample-sheet validation: an invalid config or sheet fails
-# here, before any job runs, with a message naming the key or the row.
+# here, before any job runs, with a message naming the key or the row; then the
+# functions that the .smk files call for inputs and params, kept apart from the
+# rules (snakemake --lint). Calibration's own are in calibrate_common.smk.
 
 import csv
 import json
@@ -10,7 +12,6 @@ from snakemake.exceptions import WorkflowError
 from snakemake.utils import validate
 
 from facetsynth.errors import excerpt
-
 
 
 def scalars(value):
@@ -37,18 +38,20 @@ def apply_preset(config):
     presets = config.get("presets") if isinstance(config.get("presets"), dict) else {}
     name = config.get("preset", "balanced")
     if not isinstance(name, str) or name not in presets:
-        raise WorkflowError(f"config: unknown preset {name!r} (config key 'preset'); "
-                            f"choose one of: {', '.join(map(str, presets)) or 'none defined under presets'}")
+        raise WorkflowError(
+            f"config: unknown preset {name!r} (config key 'preset'); "
+            f"choose one of: {', '.join(map(str, presets)) or 'none defined under presets'}"
+        )
     filled = {}
-    chosen = presets[name] if isinstance(presets[name], dict) else {}   # else validation names it
+    chosen = presets[name] if isinstance(presets[name], dict) else {}  # else validation names it
     for section, knobs in chosen.items():
         if not isinstance(knobs, dict):
             continue
-        if config.get(section) is None:   # a section all of whose knobs come from the preset
+        if config.get(section) is None:  # a section all of whose knobs come from the preset
             config[section] = {}
         target = config[section]
         if not isinstance(target, dict):
-            continue   # validation below names the bad section
+            continue  # validation below names the bad section
         for knob, value in knobs.items():
             if knob not in target:
                 target[knob] = value
@@ -67,37 +70,52 @@ def cross_check(config):
     """Knobs that each pass the schema but contradict each other: a WorkflowError naming both keys, before
     any job runs (each would otherwise fail, or silently misbehave, in the stage that reads them, after
     every stage before it has run)."""
+
     def fail(problem):
         raise WorkflowError(f"config: {problem}")
 
     params = config["params"]
     if not params["eta_min"] < params["eta_max"]:
-        fail(f"params.eta_min ({params['eta_min']}) must be less than params.eta_max ({params['eta_max']}): "
-             "the bounds of eta's fit contradict")
+        fail(
+            f"params.eta_min ({params['eta_min']}) must be less than params.eta_max ({params['eta_max']}): "
+            "the bounds of eta's fit contradict"
+        )
     if not params["eta_min"] <= params["eta_default"] <= params["eta_max"]:
-        fail(f"params.eta_default ({params['eta_default']}) lies outside [params.eta_min, params.eta_max] = "
-             f"[{params['eta_min']}, {params['eta_max']}]: the default eta must be one the fit could reach")
+        fail(
+            f"params.eta_default ({params['eta_default']}) lies outside [params.eta_min, params.eta_max] = "
+            f"[{params['eta_min']}, {params['eta_max']}]: the default eta must be one the fit could reach"
+        )
     cluster = config["cluster"]
     if not cluster["min_representatives"] <= cluster["max_representatives"]:
-        fail(f"cluster.min_representatives ({cluster['min_representatives']}) exceeds cluster.max_representatives "
-             f"({cluster['max_representatives']}): the range of k scanned is empty")
-    ranges = [("resample.n_theta_range", config["resample"]["n_theta_range"]),
-              ("synthesize.overlap", config["synthesize"]["overlap"])]
-    ranges += [(f"presets.{name}.resample.n_theta_range", preset["resample"]["n_theta_range"])
-               for name, preset in config["presets"].items()]
+        fail(
+            f"cluster.min_representatives ({cluster['min_representatives']}) exceeds cluster.max_representatives "
+            f"({cluster['max_representatives']}): the range of k scanned is empty"
+        )
+    ranges = [
+        ("resample.n_theta_range", config["resample"]["n_theta_range"]),
+        ("synthesize.overlap", config["synthesize"]["overlap"]),
+    ]
+    ranges += [
+        (f"presets.{name}.resample.n_theta_range", preset["resample"]["n_theta_range"])
+        for name, preset in config["presets"].items()
+    ]
     for key, (low, high) in ranges:
         if not low <= high:
             fail(f"{key} is [{low}, {high}]: its minimum exceeds its maximum")
     names = [view["name"] for view in config["validate"]["views"]]
     twice = sorted({name for name in names if names.count(name) > 1})
     if twice:
-        fail(f"validate.views: the name {twice[0]!r} is given to {names.count(twice[0])} views: each view's "
-             "outputs are named after it")
+        fail(
+            f"validate.views: the name {twice[0]!r} is given to {names.count(twice[0])} views: each view's "
+            "outputs are named after it"
+        )
     tiles = config["scatter"]["tiles"]
     if tiles > MAX_SCATTER_TILES:
-        fail(f"scatter.tiles is {tiles}, more than {MAX_SCATTER_TILES} jobs per stage and sample: the job graph "
-             f"alone would take minutes to hours to build, and every part beyond the capture's tiles of "
-             f"{256} points is empty; use at most {MAX_SCATTER_TILES}")
+        fail(
+            f"scatter.tiles is {tiles}, more than {MAX_SCATTER_TILES} jobs per stage and sample: the job graph "
+            f"alone would take minutes to hours to build, and every part beyond the capture's tiles of "
+            f"{256} points is empty; use at most {MAX_SCATTER_TILES}"
+        )
 
 
 config.update(scalars(config))
@@ -140,9 +158,11 @@ def read_samples(path):
     for line, row in rows:
         extra = [v for v in row.get(None) or [] if v != ""]
         if extra:
-            raise WorkflowError(f"{path} line {line}: {len(extra)} field(s) beyond the header's {len(header)} "
-                                f"columns ({', '.join(map(str, header))}), the first '{excerpt(extra[0], 40)}': "
-                                "a tab too many, or a column missing from the header?")
+            raise WorkflowError(
+                f"{path} line {line}: {len(extra)} field(s) beyond the header's {len(header)} "
+                f"columns ({', '.join(map(str, header))}), the first '{excerpt(extra[0], 40)}': "
+                "a tab too many, or a column missing from the header?"
+            )
         row = {k: v for k, v in row.items() if k is not None and v not in (None, "")}
         try:
             validate(row, "../schemas/samples.schema.yaml")
@@ -153,28 +173,35 @@ def read_samples(path):
         if not Path(row["path"]).exists():
             raise WorkflowError(f"{path} line {line}: path '{row['path']}' of sample '{row['sample']}' does not exist")
         if row["source"] != "import" and Path(row["path"]).is_dir():
-            raise WorkflowError(f"{path} line {line}: path '{row['path']}' of sample '{row['sample']}' is a folder; "
-                                f"a {row['source']} sample's path is a file")
+            raise WorkflowError(
+                f"{path} line {line}: path '{row['path']}' of sample '{row['sample']}' is a folder; "
+                f"a {row['source']} sample's path is a file"
+            )
         if "rig" in row and Path(row["rig"]).is_dir():
-            raise WorkflowError(f"{path} line {line}: rig '{row['rig']}' of sample '{row['sample']}' is a folder, "
-                                "not a rig description file")
+            raise WorkflowError(
+                f"{path} line {line}: rig '{row['rig']}' of sample '{row['sample']}' is a folder, "
+                "not a rig description file"
+            )
         samples[row["sample"]] = row
     if not samples:
         raise WorkflowError(f"{path}: the sample sheet lists no samples")
     for name, row in samples.items():
         main = row.get("rotation_of")
         if main is not None and (main not in samples or "rotation_of" in samples[main]):
-            raise WorkflowError(f"{path}: sample '{name}' is a rotation of '{main}', which is not a sample of its "
-                                "own in the sheet")
+            raise WorkflowError(
+                f"{path}: sample '{name}' is a rotation of '{main}', which is not a sample of its own in the sheet"
+            )
         if "rotation_deg" in row and row["source"] != "virtual":
-            raise WorkflowError(f"{path}: sample '{name}': rotation_deg applies to virtual samples only (a real "
-                                "capture is turned on the rig)")
+            raise WorkflowError(
+                f"{path}: sample '{name}': rotation_deg applies to virtual samples only (a real "
+                "capture is turned on the rig)"
+            )
     return samples
 
 
 SAMPLE_SHEET = read_samples(config["samples"])
 SAMPLES = list(SAMPLE_SHEET)
-MODEL_SAMPLES = [s for s in SAMPLES if "rotation_of" not in SAMPLE_SHEET[s]]   # rotations only feed synthesis
+MODEL_SAMPLES = [s for s in SAMPLES if "rotation_of" not in SAMPLE_SHEET[s]]  # rotations only feed synthesis
 
 
 def rotations_of(sample):
@@ -201,7 +228,7 @@ def rendered_truth(sample):
         try:
             camera = yaml.safe_load(Path(row["path"]).read_text())["camera"]
         except (OSError, yaml.YAMLError, KeyError, TypeError):
-            return None   # the capture job names the problem
+            return None  # the capture job names the problem
         if isinstance(camera, dict) and camera.get("backend") == "virtual" and "scene" in camera and "rig" in camera:
             return {"scene": camera["scene"], "rig": camera["rig"]}
     return None
@@ -216,8 +243,9 @@ def source_files(row):
     if row["source"] == "lp":
         try:
             from facetsynth.rti import lp
+
             listed = [path.parent / name for name in lp.read(path)[0]] + [lp.side_file(path)]
-        except Exception:   # the capture job names the problem
+        except Exception:  # the capture job names the problem
             listed = []
         return [str(path)] + [str(f) for f in listed if f.is_file()]
     if row["source"] == "import":
@@ -251,21 +279,25 @@ def final_outputs(sample):
     """What a user takes away: the fitted SVBRDF with its stencil models and self-check, and for a sample whose
     held-out views the virtual rig can render (a virtual one, or the rig with the virtual camera)
     the held-out validation."""
-    outputs = [f"results/{sample}/svbrdf", f"results/{sample}/stencil_fit/metrics.json",
-               f"results/{sample}/selfcheck/metrics.json"]   # every sample: the fit against its own frames
+    # every sample: the fit against its own frames
+    outputs = [
+        f"results/{sample}/svbrdf",
+        f"results/{sample}/stencil_fit/metrics.json",
+        f"results/{sample}/selfcheck/metrics.json",
+    ]
     if rendered_truth(sample) is not None:
         outputs.append(f"results/{sample}/validate/metrics.json")
-    outputs.append(f"results/{sample}/export/metrics.json")   # the portable glTF material and its loss
-    outputs += report_figures(sample)   # the figures of `snakemake --report` (workflow/rules/report.smk)
+    outputs.append(f"results/{sample}/export/metrics.json")  # the portable glTF material and its loss
+    outputs += report_figures(sample)  # the figures of `snakemake --report` (workflow/rules/report.smk)
     return outputs
-
 
 
 def report_figures(sample):
     """The report figures of ``sample`` (targets of the default run); the benchmark plots with the first
     sample's."""
-    out = [f"results/{sample}/report/{name}.png"
-           for name in ("capture", "relief", "kd", "ks", "eta", "ndf", "clusters")]
+    out = [
+        f"results/{sample}/report/{name}.png" for name in ("capture", "relief", "kd", "ks", "eta", "ndf", "clusters")
+    ]
     out.append(f"results/{sample}/report/stencil")
     if rendered_truth(sample) is not None:
         out += [f"results/{sample}/report/heldout_{view}.png" for view in HELDOUT_VIEWS]
@@ -274,9 +306,45 @@ def report_figures(sample):
     return out
 
 
-
 def rotation_inputs(wildcards):
     """The geometry and partial NDF tables of the sample's further rotations (sec. 4)."""
     rotations = rotations_of(wildcards.sample)
-    return {"rotation_geometry": [f"results/{r}/separate/geometry.json" for r in rotations],
-            "rotation_ndf": [f"results/{r}/partial_ndf/ndf" for r in rotations]}
+    return {
+        "rotation_geometry": [f"results/{r}/separate/geometry.json" for r in rotations],
+        "rotation_ndf": [f"results/{r}/partial_ndf/ndf" for r in rotations],
+    }
+
+
+def capture_inputs(wildcards):
+    """The capture rule's inputs: the sheet path, the files the capture is made from (source_files) and, for a
+    virtual sample, its rig description."""
+    row = SAMPLE_SHEET[wildcards.sample]
+    inputs = {"path": row["path"], "sources": source_files(row)}
+    if row["source"] == "virtual":
+        inputs["rig"] = sample_rig(wildcards.sample)
+    return inputs
+
+
+def virtual_scene(wildcards):
+    """The scene and rig the held-out views of a sample are rendered from (heldout_capture's inputs, validate's
+    rig); a WorkflowError for a sample the virtual rig cannot render."""
+    truth = rendered_truth(wildcards.sample)
+    if truth is None:
+        raise WorkflowError(
+            f"validate: sample '{wildcards.sample}' is not virtual, so there is no held-out "
+            "ground truth to render; validate against a held-out capture of your own with "
+            "`facetsynth predict results/SAMPLE/svbrdf HELDOUT/manifest.json OUT` (README)"
+        )
+    return truth
+
+
+def export_inputs(wildcards):
+    """The glTF export's inputs: the SVBRDF and, for a sample with rendered held-out truth, the held-out views,
+    the full SVBRDF's validation metrics and the truth's rig (HELDOUT_VIEWS: validate.smk)."""
+    inputs = {"svbrdf": f"results/{wildcards.sample}/svbrdf"}
+    truth = rendered_truth(wildcards.sample)
+    if truth is not None:
+        inputs["heldout"] = [f"results/{wildcards.sample}/validate/heldout/{view}" for view in HELDOUT_VIEWS]
+        inputs["validate_metrics"] = f"results/{wildcards.sample}/validate/metrics.json"
+        inputs["rig"] = truth["rig"]
+    return inputs

@@ -2,16 +2,7 @@
 # material (KHR_materials_anisotropy, _specular, _ior textures on a quad) -> results/{sample}/export/gltf/,
 # and what it costs: for a sample with held-out truth, the held-out relative L2 of the portable material
 # beside the full SVBRDF's (validate/metrics.json) -> results/{sample}/export/metrics.json.
-
-
-def export_inputs(wildcards):
-    inputs = {"svbrdf": f"results/{wildcards.sample}/svbrdf"}
-    truth = rendered_truth(wildcards.sample)
-    if truth is not None:
-        inputs["heldout"] = [f"results/{wildcards.sample}/validate/heldout/{view}" for view in HELDOUT_VIEWS]
-        inputs["validate_metrics"] = f"results/{wildcards.sample}/validate/metrics.json"
-        inputs["rig"] = truth["rig"]
-    return inputs
+# Input function export_inputs: common.smk.
 
 
 rule export_gltf:
@@ -20,14 +11,14 @@ rule export_gltf:
     output:
         gltf=directory("results/{sample}/export/gltf"),
         metrics="results/{sample}/export/metrics.json",
-    params:
-        views=list(HELDOUT_VIEWS),
     log:
         "results/{sample}/logs/export_gltf.log",
     benchmark:
         "results/{sample}/benchmarks/export_gltf.tsv"
     threads: 1
     resources:
-        mem_mb=1000,   # measured: 0.40-0.65 GB peak (demo native 168 x 168; wallpaper, satin 64 x 64); 8-12 s of CPU
+        mem_mb=1000,  # measured: 0.40-0.65 GB peak (demo native 168 x 168; wallpaper, satin 64 x 64); 8-12 s of CPU
+    params:
+        views=list(HELDOUT_VIEWS),
     script:
         "../scripts/export_gltf.py"

@@ -21,18 +21,18 @@ rule params:
         synthesis_confidence="results/{sample}/synthesize/confidence.npy",
         grid="results/{sample}/synthesize/grid.json",
     output:
-        svbrdf=directory("results/{sample}/params/svbrdf"),   # the pipeline's model: refine's start
+        svbrdf=directory("results/{sample}/params/svbrdf"),  # the pipeline's model: refine's start
         metrics="results/{sample}/params/metrics.json",
-    params:
-        grazing_deg=config["partial_ndf"]["grazing_deg"],
-        **config["params"],
     log:
         "results/{sample}/logs/params.log",
     benchmark:
         "results/{sample}/benchmarks/params.tsv"
-    threads: 2   # tiles of points in parallel
+    threads: 2  # tiles of points in parallel
     resources:
-        mem_mb=3500,   # make bench-scale: 2.3 GB peak at 800^2 (3.2 GB in an earlier run)
+        mem_mb=3500,  # make bench-scale: 2.3 GB peak at 800^2 (3.2 GB in an earlier run)
+    params:
+        **config["params"],
+        grazing_deg=config["partial_ndf"]["grazing_deg"],
     script:
         "../scripts/params.py"
 
@@ -46,15 +46,15 @@ rule refine:
     output:
         svbrdf=directory("results/{sample}/svbrdf"),
         metrics="results/{sample}/refine/metrics.json",
-    params:
-        **config["refine"],
-        material_tolerance=config["params"]["material_tolerance"],   # materials as params groups them
     log:
         "results/{sample}/logs/refine.log",
     benchmark:
         "results/{sample}/benchmarks/refine.tsv"
-    threads: 2   # tiles of points in parallel
+    threads: 2  # tiles of points in parallel
     resources:
-        mem_mb=1500,   # demo, 168^2 points x 1360 lights: 0.8 GB peak (tiles of points: does not grow with P)
+        mem_mb=1500,  # demo, 168^2 points x 1360 lights: 0.8 GB peak (tiles of points: does not grow with P)
+    params:
+        **config["refine"],
+        material_tolerance=config["params"]["material_tolerance"],  # materials as params groups them
     script:
         "../scripts/refine.py"

@@ -9,15 +9,15 @@ rule rectify:
         frames=directory("results/{sample}/rectify/frames"),
         geometry="results/{sample}/rectify/geometry.json",
         metrics="results/{sample}/rectify/metrics.json",
-    params:
-        resolution=config["rectify"]["resolution"],
-        filter=config["rectify"]["filter"],
     log:
         "results/{sample}/logs/rectify.log",
     benchmark:
         "results/{sample}/benchmarks/rectify.tsv"
-    threads: 2   # frames in parallel (facetsynth.frames)
+    threads: 2  # frames in parallel (facetsynth.frames)
     resources:
         mem_mb=2000,
+    params:
+        resolution=config["rectify"]["resolution"],
+        filter=config["rectify"]["filter"],
     script:
         "../scripts/rectify.py"

@@ -8,22 +8,22 @@ rule separate:
         frames="results/{sample}/rectify/frames",
         geometry="results/{sample}/rectify/geometry.json",
     output:
-        geometry="results/{sample}/separate/geometry.json",   # rectify's, with the shading normals
+        geometry="results/{sample}/separate/geometry.json",  # rectify's, with the shading normals
         normals="results/{sample}/separate/normals.npy",
         kd="results/{sample}/separate/kd.exr",
         specular="results/{sample}/separate/specular.npy",
         valid="results/{sample}/separate/valid.npy",
         metrics="results/{sample}/separate/metrics.json",
-    params:
-        **config["separate"],
-        heldout_every=config["selfcheck"]["heldout_every"],   # those lights are kept out of every later stage
     log:
         "results/{sample}/logs/separate.log",
     benchmark:
         "results/{sample}/benchmarks/separate.tsv"
-    threads: 2   # frames read in parallel
+    threads: 2  # frames read in parallel
     resources:
-        mem_mb=6000,   # make bench-scale: 5.7 GB peak at 800^2 (the memory-mapped (P, F, 3) tables)
+        mem_mb=6000,  # make bench-scale: 5.7 GB peak at 800^2 (the memory-mapped (P, F, 3) tables)
+    params:
+        **config["separate"],
+        heldout_every=config["selfcheck"]["heldout_every"],  # those lights are kept out of every later stage
     script:
         "../scripts/separate.py"
 
@@ -35,31 +35,33 @@ RESAMPLE_INPUTS = {
 }
 
 
-rule resample:   # the whole capture; with scatter.tiles > 1 the join of resample_part's jobs (bitwise the same)
+rule resample:  # the whole capture; with scatter.tiles > 1 the join of resample_part's jobs (bitwise the same)
     input:
         **RESAMPLE_INPUTS,
-        **scatter_parts(slice="results/{{sample}}/resample/parts/{scatteritem}/slice",
-                        records="results/{{sample}}/resample/parts/{scatteritem}/record.npz"),
+        **scatter_parts(
+            slice="results/{{sample}}/resample/parts/{scatteritem}/slice",
+            records="results/{{sample}}/resample/parts/{scatteritem}/record.npz",
+        ),
     output:
         slice=directory("results/{sample}/resample/slice"),
         colour="results/{sample}/resample/specular_colour.npy",
         grid="results/{sample}/resample/grid.json",
         metrics="results/{sample}/resample/metrics.json",
-    params:
-        grazing_deg=config["partial_ndf"]["grazing_deg"],
-        **config["resample"],
     log:
         "results/{sample}/logs/resample.log",
     benchmark:
         "results/{sample}/benchmarks/resample.tsv"
-    threads: 1 if SCATTERED else 2   # tiles of points in parallel; the join copies
+    threads: 1 if SCATTERED else 2  # tiles of points in parallel; the join copies
     resources:
         mem_mb=1000 if SCATTERED else 2000,
+    params:
+        **config["resample"],
+        grazing_deg=config["partial_ndf"]["grazing_deg"],
     script:
         "../scripts/resample.py"
 
 
-use rule resample as resample_part with:   # one part of the points (whole tiles); unused at scatter.tiles 1
+use rule resample as resample_part with:  # one part of the points (whole tiles); unused at scatter.tiles 1
     input:
         **RESAMPLE_INPUTS,
     output:
@@ -81,28 +83,30 @@ PARTIAL_NDF_INPUTS = {
 }
 
 
-rule partial_ndf:   # the whole capture; with scatter.tiles > 1 the join of partial_ndf_part's jobs (bitwise the same)
+rule partial_ndf:  # the whole capture; with scatter.tiles > 1 the join of partial_ndf_part's jobs (bitwise the same)
     input:
         **PARTIAL_NDF_INPUTS,
-        **scatter_parts(ndf="results/{{sample}}/partial_ndf/parts/{scatteritem}/ndf",
-                        records="results/{{sample}}/partial_ndf/parts/{scatteritem}/record.npz"),
+        **scatter_parts(
+            ndf="results/{{sample}}/partial_ndf/parts/{scatteritem}/ndf",
+            records="results/{{sample}}/partial_ndf/parts/{scatteritem}/record.npz",
+        ),
     output:
         ndf=directory("results/{sample}/partial_ndf/ndf"),
         metrics="results/{sample}/partial_ndf/metrics.json",
-    params:
-        **config["partial_ndf"],
     log:
         "results/{sample}/logs/partial_ndf.log",
     benchmark:
         "results/{sample}/benchmarks/partial_ndf.tsv"
-    threads: 1 if SCATTERED else 2   # tiles of points in parallel; the join copies
+    threads: 1 if SCATTERED else 2  # tiles of points in parallel; the join copies
     resources:
         mem_mb=1000 if SCATTERED else 3000,
+    params:
+        **config["partial_ndf"],
     script:
         "../scripts/partial_ndf.py"
 
 
-use rule partial_ndf as partial_ndf_part with:   # one part of the points (whole tiles); unused at scatter.tiles 1
+use rule partial_ndf as partial_ndf_part with:  # one part of the points (whole tiles); unused at scatter.tiles 1
     input:
         **PARTIAL_NDF_INPUTS,
     output:

@@ -20,20 +20,20 @@ rule cluster:
         rep_confidence="results/{sample}/cluster/representative_confidence.npy",
         rotation="results/{sample}/cluster/rotation.npy",
         metrics="results/{sample}/cluster/metrics.json",
-    params:
-        seed=config["seed"],
-        shadowing=config["partial_ndf"]["shadowing"],   # eqs. 11 and 5 for the pooled representative partial NDFs
-        grazing_deg=config["partial_ndf"]["grazing_deg"],
-        tolerance=config["partial_ndf"]["tolerance"],
-        max_iterations=config["partial_ndf"]["max_iterations"],
-        **config["cluster"],
     log:
         "results/{sample}/logs/cluster.log",
     benchmark:
         "results/{sample}/benchmarks/cluster.tsv"
-    threads: 2   # coarse tables read on threads; k-means and eq. 15 in BLAS
+    threads: 2  # coarse tables read on threads; k-means and eq. 15 in BLAS
     resources:
-        mem_mb=5000,   # make bench-scale: 4.9 GB peak at 800^2
+        mem_mb=5000,  # make bench-scale: 4.9 GB peak at 800^2
+    params:
+        **config["cluster"],
+        seed=config["seed"],
+        shadowing=config["partial_ndf"]["shadowing"],  # eqs. 11 and 5 for the pooled representative partial NDFs
+        grazing_deg=config["partial_ndf"]["grazing_deg"],
+        tolerance=config["partial_ndf"]["tolerance"],
+        max_iterations=config["partial_ndf"]["max_iterations"],
     script:
         "../scripts/cluster.py"
 
@@ -57,16 +57,16 @@ rule synthesize:
         fresnel_cosine="results/{sample}/synthesize/fresnel_cosine.npy",
         grid="results/{sample}/synthesize/grid.json",
         metrics="results/{sample}/synthesize/metrics.json",
-    params:
-        seed=config["seed"],
-        **config["synthesize"],
-        material_tolerance=config["params"]["material_tolerance"],
     log:
         "results/{sample}/logs/synthesize.log",
     benchmark:
         "results/{sample}/benchmarks/synthesize.tsv"
-    threads: 2   # eq. 15 scores in BLAS
+    threads: 2  # eq. 15 scores in BLAS
     resources:
         mem_mb=4000,
+    params:
+        **config["synthesize"],
+        seed=config["seed"],
+        material_tolerance=config["params"]["material_tolerance"],
     script:
         "../scripts/synthesize.py"

@@ -1,6 +1,7 @@
 # Held-out views (paper 002 sec. 6, Figs. 9-10): the virtual rig renders captures from views not
 # used for fitting; the fitted SVBRDF and the per-point Ward baseline predict them (the code path
 # of `facetsynth predict`); results/{sample}/validate/metrics.json scores both.
+# Input function virtual_scene: common.smk.
 
 HELDOUT_VIEWS = {v["name"]: v for v in config["validate"]["views"]}
 
@@ -9,26 +10,11 @@ wildcard_constraints:
     view="|".join(HELDOUT_VIEWS),
 
 
-def virtual_scene(wildcards):
-    truth = rendered_truth(wildcards.sample)
-    if truth is None:
-        raise WorkflowError(f"validate: sample '{wildcards.sample}' is not virtual, so there is no held-out "
-                            "ground truth to render; validate against a held-out capture of your own with "
-                            "`facetsynth predict results/SAMPLE/svbrdf HELDOUT/manifest.json OUT` (README)")
-    return truth
-
-
 rule heldout_capture:
     input:
         unpack(virtual_scene),
     output:
         capture=directory("results/{sample}/validate/heldout/{view}"),
-    params:
-        theta_deg=lambda wc: HELDOUT_VIEWS[wc.view]["theta_deg"],
-        phi_deg=lambda wc: HELDOUT_VIEWS[wc.view]["phi_deg"],
-        led_every=config["validate"]["led_every"],
-        position_every=config["validate"]["position_every"],
-        seed=config["seed"],
     log:
         "results/{sample}/logs/heldout_capture_{view}.log",
     benchmark:
@@ -36,6 +22,12 @@ rule heldout_capture:
     threads: 1
     resources:
         mem_mb=2000,
+    params:
+        theta_deg=lambda wc: HELDOUT_VIEWS[wc.view]["theta_deg"],
+        phi_deg=lambda wc: HELDOUT_VIEWS[wc.view]["phi_deg"],
+        led_every=config["validate"]["led_every"],
+        position_every=config["validate"]["position_every"],
+        seed=config["seed"],
     script:
         "../scripts/heldout_capture.py"
 
@@ -49,15 +41,13 @@ BASELINE_INPUTS = {
 }
 
 
-rule baseline_ward:   # all points; with scatter.tiles > 1 the join of baseline_ward_part's fits (bitwise the same)
+rule baseline_ward:  # all points; with scatter.tiles > 1 the join of baseline_ward_part's fits (bitwise the same)
     input:
         **BASELINE_INPUTS,
         **scatter_parts(records="results/{{sample}}/baseline/parts/{scatteritem}.npz"),
     output:
         model=directory("results/{sample}/baseline/ward"),
         metrics="results/{sample}/baseline/metrics.json",
-    params:
-        max_nfev=config["baseline"]["max_nfev"],
     log:
         "results/{sample}/logs/baseline_ward.log",
     benchmark:
@@ -65,11 +55,13 @@ rule baseline_ward:   # all points; with scatter.tiles > 1 the join of baseline_
     threads: 1
     resources:
         mem_mb=2000,
+    params:
+        max_nfev=config["baseline"]["max_nfev"],
     script:
         "../scripts/baseline_ward.py"
 
 
-use rule baseline_ward as baseline_ward_part with:   # one part's per-point fits; unused at scatter.tiles 1
+use rule baseline_ward as baseline_ward_part with:  # one part's per-point fits; unused at scatter.tiles 1
     input:
         **BASELINE_INPUTS,
     output:
@@ -92,13 +84,6 @@ rule validate:
         metrics="results/{sample}/validate/metrics.json",
         images=directory("results/{sample}/validate/images"),
         predictions=directory("results/{sample}/validate/predictions"),
-    params:
-        views=list(HELDOUT_VIEWS),
-        # the fitting stages of each method (Snakemake benchmark: files, read when this job runs)
-        fit_benchmarks=lambda wc: [f"results/{wc.sample}/benchmarks/{s}.tsv"
-                                   for s in ("partial_ndf", "cluster", "synthesize", "params", "refine")],
-        ward_benchmark=lambda wc: f"results/{wc.sample}/benchmarks/baseline_ward.tsv",
-        images_per_view=config["validate"]["images_per_view"],
     log:
         "results/{sample}/logs/validate.log",
     benchmark:
@@ -106,6 +91,15 @@ rule validate:
     threads: 1
     resources:
         mem_mb=3000,
+    params:
+        views=list(HELDOUT_VIEWS),
+        # the fitting stages of each method (Snakemake benchmark: files, read when this job runs)
+        fit_benchmarks=lambda wc: [
+            f"results/{wc.sample}/benchmarks/{s}.tsv"
+            for s in ("partial_ndf", "cluster", "synthesize", "params", "refine")
+        ],
+        ward_benchmark=lambda wc: f"results/{wc.sample}/benchmarks/baseline_ward.tsv",
+        images_per_view=config["validate"]["images_per_view"],
     script:
         "../scripts/validate.py"
 
@@ -115,14 +109,17 @@ rule selfcheck:
         svbrdf="results/{sample}/svbrdf",
         manifest="results/{sample}/hdr/manifest.json",
         frames="results/{sample}/hdr/frames",
-        geometry="results/{sample}/separate/geometry.json",   # the lights' intensities as the fit saw them
+        geometry="results/{sample}/separate/geometry.json",  # the lights' intensities as the fit saw them
     output:
         metrics="results/{sample}/selfcheck/metrics.json",
-        images=report(directory("results/{sample}/selfcheck/images"), patterns=["{subset}_worst.png"],
-                      caption="../report/selfcheck.rst", category="{sample}", subcategory="5 held-out views",
-                      labels={"figure": "self-check", "subset": "{subset}"}),
-    params:
-        **config["selfcheck"],
+        images=report(
+            directory("results/{sample}/selfcheck/images"),
+            patterns=["{subset}_worst.png"],
+            caption="../report/selfcheck.rst",
+            category="{sample}",
+            subcategory="5 held-out views",
+            labels={"figure": "self-check", "subset": "{subset}"},
+        ),
     log:
         "results/{sample}/logs/selfcheck.log",
     benchmark:
@@ -130,5 +127,7 @@ rule selfcheck:
     threads: 1
     resources:
         mem_mb=1000,
+    params:
+        **config["selfcheck"],
     script:
         "../scripts/selfcheck.py"
