@@ -63,10 +63,28 @@ class Settings(StageSettings):
     saturation_margin: float = 0.02   # values above (1 - margin) x saturation count as clipped
 
 
+@dataclass(frozen=True)
+class Capture:
+    """What the stage reads, checked: the capture's manifest (``_dir``: its folder) and path, the plausibility
+    warnings of :func:`load`, the pixels that see the sample, the camera's image shape (H, W, 3), the sensor
+    model the merge applies, and for 8-bit exposures their response (None: EXR) with the declared transfer
+    (None: recovered from the brackets) and black level."""
+    manifest: dict
+    path: Path
+    warnings: list[str]
+    on_sample: np.ndarray
+    shape: tuple[int, int, int]
+    sensor: SensorModel
+    response: Response | None = None
+    transfer: Transfer | None = None
+    black_level: float = 0.0
+
+
 def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threads: int = 1, *,
         response_settings: ResponseSettings = ResponseSettings()) -> None:
     """Load, merge, write: every frame of the capture ``inputs.capture`` merged into ``outputs.frames/NNNN.exr``,
-    an HDR manifest ``outputs.manifest`` and ``outputs.metrics``.
+    an HDR manifest ``outputs.manifest`` and ``outputs.metrics``; for a virtual capture, the merged frames
+    scored against the true radiance (:func:`truth_scores`).
 
     The output manifest describes the merged frames as a capture with one
     exposure of time 1 per frame and no clipping, so it is itself importable.
@@ -77,121 +95,192 @@ def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threa
     8-bit exposures (module docstring): the recovered or declared curve is in the metrics (``response``),
     a declared transfer and black level also as ``transfer``.
     """
-    capture = manifest_io.load(inputs.capture)
-    manifest_path = Path(capture["_dir"]) / "manifest.json"
-    _check_lights(capture, manifest_path)
-    # The plausibility checks of ``facetsynth check`` (:mod:`facetsynth.plausibility`), for a capture that
-    # skipped it: refused here, before it becomes a model; its warnings logged and kept in the metrics.
-    warnings = plausibility.check_geometry(capture, manifest_path) + plausibility.duplicate_files(capture)
-    plausibility.check_truth_scene(capture, manifest_path)
-    on_sample = plausibility.sample_pixels(capture)
-    noise = capture.get("noise", {})
-    sensor = SensorModel(saturation=capture.get("saturation"), read_sigma=noise.get("read_sigma", 0.0),
+    capture = load(inputs, settings, response_settings)
+    merged, warnings = merge(capture, Path(outputs.frames), threads)
+    write_manifest(capture.manifest, Path(outputs.frames), Path(outputs.manifest))
+    metrics = merge_metrics(capture, merged, warnings)
+    scores = truth_scores(merged)
+    write_json(outputs.metrics, {"ground_truth": bool(scores), **metrics, **scores})
+
+
+# ---------------------------------------------------------------------------- load
+def load(inputs: Inputs, settings: Settings, response_settings: ResponseSettings = ResponseSettings()) -> Capture:
+    """The capture's manifest, refused here if the method cannot use it (:func:`_check_lights`; the plausibility
+    checks of ``facetsynth check``, :mod:`facetsynth.plausibility`, for a capture that skipped it: refused
+    before it becomes a model, its warnings kept for the metrics), and the sensor model it is merged with
+    (:func:`sensor_model`)."""
+    manifest = manifest_io.load(inputs.capture)
+    path = Path(manifest["_dir"]) / "manifest.json"
+    _check_lights(manifest, path)
+    warnings = plausibility.check_geometry(manifest, path) + plausibility.duplicate_files(manifest)
+    plausibility.check_truth_scene(manifest, path)
+    on_sample = plausibility.sample_pixels(manifest)
+    shape = (manifest["camera"]["height"], manifest["camera"]["width"], 3)
+    sensor, response, transfer, black_level = sensor_model(manifest, path, shape, settings, response_settings)
+    return Capture(manifest, path, warnings, on_sample, shape, sensor, response, transfer, black_level)
+
+
+def sensor_model(manifest: dict, path: Path, shape: tuple[int, int, int], settings: Settings,
+                 response_settings: ResponseSettings) -> tuple[SensorModel, Response | None, Transfer | None, float]:
+    """The sensor model of the merge, the 8-bit exposures' response (None for EXR), their declared transfer
+    (None: the response recovered from the brackets) and black level. EXR: the manifest's ``saturation`` and
+    ``noise``; 8-bit: the response's own model (module docstring). A transfer on EXR exposures is an InputError."""
+    noise = manifest.get("noise", {})
+    sensor = SensorModel(saturation=manifest.get("saturation"), read_sigma=noise.get("read_sigma", 0.0),
                          shot_gain=noise.get("shot_gain", 0.0), floor_sigmas=settings.floor_sigmas,
                          saturation_margin=settings.saturation_margin)
-    shape = (capture["camera"]["height"], capture["camera"]["width"], 3)
-    response = None
-    transfer, black_level = _declared_transfer(capture, manifest_path)
-    if _eight_bit(capture, manifest_path):
+    transfer, black_level = _declared_transfer(manifest, path)
+    if not _eight_bit(manifest, path):
         if transfer is not None:
-            response = Response.from_transfer(transfer, black_level)
-            log.info("8-bit exposures: declared transfer %s, black level %g", transfer.describe(), black_level)
-        else:
-            response = _recover_response(capture, shape, manifest_path, response_settings)
-            log.info("8-bit exposures: camera response recovered (Debevec-Malik 1997; scale from %s)",
-                     ", ".join(response.scale_from))
-        sensor = response.sensor_model(settings.floor_sigmas)
-    elif transfer is not None:
-        raise InputError(manifest_path, f'"transfer" ({transfer.describe()}) applies to 8-bit exposures only; '
-                                        f"these are EXR (linear exposure values, e.g. "
-                                        f"{capture['frames'][0]['exposures'][0]['file']}): drop the key")
-    frames_dir, manifest_out = Path(outputs.frames), Path(outputs.manifest)
-    key = {"capture": file_key(manifest_path), "sensor": asdict(sensor)}
-    if response is not None:
-        key["response"] = hashlib.sha256(response.linear.tobytes()).hexdigest()
+            raise InputError(path, f'"transfer" ({transfer.describe()}) applies to 8-bit exposures only; '
+                                   f"these are EXR (linear exposure values, e.g. "
+                                   f"{manifest['frames'][0]['exposures'][0]['file']}): drop the key")
+        return sensor, None, None, black_level
+    if transfer is not None:
+        response = Response.from_transfer(transfer, black_level)
+        log.info("8-bit exposures: declared transfer %s, black level %g", transfer.describe(), black_level)
+    else:
+        response = _recover_response(manifest, shape, path, response_settings)
+        log.info("8-bit exposures: camera response recovered (Debevec-Malik 1997; scale from %s)",
+                 ", ".join(response.scale_from))
+    return response.sensor_model(settings.floor_sigmas), response, transfer, black_level
+
+
+# ---------------------------------------------------------------------------- merge
+def merge(capture: Capture, frames_dir: Path, threads: int = 1) -> tuple[list[Merged], list[str]]:
+    """Every frame merged (:func:`merge_frame`) on ``threads`` threads into ``frames_dir``, published whole
+    (:func:`facetsynth.fileio.atomic_dir`: an interrupted run resumes in its staging folder, to the same
+    bytes); returns the frames' figures and the capture's warnings, those of :func:`load` and of the clipping.
+    A capture whose every frame is dark, or clipped, is an InputError, and nothing is published."""
+    key = {"capture": file_key(capture.path), "sensor": asdict(capture.sensor)}
+    if capture.response is not None:
+        key["response"] = hashlib.sha256(capture.response.linear.tobytes()).hexdigest()
     with atomic_dir(frames_dir, key) as staging:
+        jobs = list(enumerate(capture.manifest["frames"]))
+        merged = map_frames(lambda job: merge_frame(capture, *job, staging), jobs, threads, "hdr")
+        dark = [q for q, m in enumerate(merged) if m.dark]
+        if len(dark) == len(merged):
+            raise InputError(capture.path, f"all {len(dark)} frames are dark (no pixel above the sensor's noise "
+                                           f"floor, {capture.sensor.noise_floor:g}): nothing was measured; check "
+                                           "that the lights fire, the lens is uncovered and the exposures are long "
+                                           "enough")
+        warnings = capture.warnings + plausibility.check_clipping(
+            [m.clipped_on_sample for m in merged], int(capture.on_sample.sum()), capture.manifest, capture.path, "hdr")
+    return merged, warnings
 
-        def merge_frame(job: tuple[int, dict]) -> Merged:
-            """Merge frame q (or read it back, if merged before an interruption)."""
-            q, frame = job
-            times = np.array([e["time"] for e in frame["exposures"]])
-            out = staging / f"{q:04d}.exr"
-            merged_before = _read_merged(out) if out.exists() else None
-            if merged_before is None:
-                files = [e["file"] for e in frame["exposures"]]
-                values = np.stack([_read_exposure(file, shape, response) for file in files])
-                merged, saturated = merge_exposures(values, times, sensor)
-                write_exr(out, {"RGB": merged, "saturated": saturated.astype(np.float32)},
-                          header=_negatives(files, values).header(), precision="float24")
-                # Metrics from the stored (PXR24-rounded) values, as a resumed run reads them back.
-                merged_before = _read_merged(out)
-            merged, saturated, negatives = merged_before
-            out_frame = {"light": frame["light"], "exposures": [{"file": f"{frames_dir.name}/{q:04d}.exr", "time": 1.0}]}
-            errors = None
-            if "radiance" in frame.get("truth", {}):
-                truth = read_rgb(frame["truth"]["radiance"])
-                # Pixels above the noise floor in the longest exposure, not clipped in all.
-                above_floor = truth * times.max() > sensor.noise_floor
-                errors = relative_errors(merged, truth, above_floor & ~saturated[..., None], sample=4096)
-                out_frame["truth"] = {"radiance": os.path.relpath(frame["truth"]["radiance"], manifest_out.parent)}
-            # Dark: no pixel above the noise floor in the longest exposure (0 for a noise-free HDR import).
-            dark = not (saturated.any() or (merged * times.max() > sensor.noise_floor).any())
-            return Merged(out_frame, int(saturated.sum()), negatives, errors, dark,
-                          int(np.count_nonzero(saturated & on_sample)))
 
-        per_frame = map_frames(merge_frame, list(enumerate(capture["frames"])), threads, "hdr")
-        dark = [q for q, m in enumerate(per_frame) if m.dark]
-        if len(dark) == len(per_frame):
-            raise InputError(manifest_path, f"all {len(dark)} frames are dark (no pixel above the sensor's noise "
-                                            f"floor, {sensor.noise_floor:g}): nothing was measured; check that "
-                                            "the lights fire, the lens is uncovered and the exposures are long "
-                                            "enough")
-        warnings += plausibility.check_clipping([m.clipped_on_sample for m in per_frame], int(on_sample.sum()),
-                                                capture, manifest_path, "hdr")
-    frames = [m.frame for m in per_frame]
-    saturated_total = sum(m.saturated for m in per_frame)
-    negatives = Negatives.total([m.negatives for m in per_frame])
-    errors = [m.errors for m in per_frame if m.errors is not None]
-    # The merged frames are linear EXR: the 8-bit exposures' transfer and black level do not apply to them.
-    hdr_manifest = {**{k: v for k, v in capture.items() if k not in ("frames", "_dir", "transfer", "black_level")},
+def merge_frame(capture: Capture, q: int, frame: dict, staging: Path) -> Merged:
+    """Merge frame q into ``staging/NNNN.exr`` (or read it back, if merged before an interruption), and its
+    figures, measured on the stored (PXR24-rounded) values as a resumed run reads them back."""
+    times = np.array([e["time"] for e in frame["exposures"]])
+    out = staging / f"{q:04d}.exr"
+    merged_before = _read_merged(out) if out.exists() else None
+    if merged_before is None:
+        files = [e["file"] for e in frame["exposures"]]
+        values = np.stack([_read_exposure(file, capture.shape, capture.response) for file in files])
+        merged, saturated = merge_exposures(values, times, capture.sensor)
+        write_exr(out, {"RGB": merged, "saturated": saturated.astype(np.float32)},
+                  header=_negatives(files, values).header(), precision="float24")
+        merged_before = _read_merged(out)
+    merged, saturated, negatives = merged_before
+    noise_floor = capture.sensor.noise_floor
+    # Dark: no pixel above the noise floor in the longest exposure (0 for a noise-free HDR import).
+    dark = not (saturated.any() or (merged * times.max() > noise_floor).any())
+    return Merged(int(saturated.sum()), negatives, frame_truth_errors(frame, merged, saturated, times, noise_floor),
+                  dark, int(np.count_nonzero(saturated & capture.on_sample)))
+
+
+# ---------------------------------------------------------------------------- write
+def write_manifest(manifest: dict, frames_dir: Path, manifest_out: Path) -> None:
+    """The HDR manifest: the capture's ``manifest`` with the merged frames in ``frames_dir`` (one exposure of
+    time 1 each, no clipping, no noise; a virtual capture's with their true radiance), its file names relative
+    to ``manifest_out``'s folder. The merged frames are linear EXR: the 8-bit exposures' transfer and black
+    level do not apply to them."""
+    hdr_manifest = {**{k: v for k, v in manifest.items() if k not in ("frames", "_dir", "transfer", "black_level")},
                     "saturation": None}
-    hdr_manifest["frames"] = frames
+    hdr_manifest["frames"] = [_merged_frame(q, frame, frames_dir, manifest_out)
+                              for q, frame in enumerate(manifest["frames"])]
     hdr_manifest["noise"] = {"read_sigma": 0.0, "shot_gain": 0.0}
-    if "scene" in capture.get("truth", {}):
-        hdr_manifest["truth"] = {"scene": os.path.relpath(capture["truth"]["scene"], manifest_out.parent)}
+    if "scene" in manifest.get("truth", {}):
+        hdr_manifest["truth"] = {"scene": os.path.relpath(manifest["truth"]["scene"], manifest_out.parent)}
     manifest_io.save(manifest_out, hdr_manifest)
 
-    metrics = {"ground_truth": bool(errors), "frames": len(frames), "saturated_pixels": saturated_total,
+
+def _merged_frame(q: int, frame: dict, frames_dir: Path, manifest_out: Path) -> dict:
+    """Frame q's entry in the HDR manifest."""
+    out_frame = {"light": frame["light"], "exposures": [{"file": f"{frames_dir.name}/{q:04d}.exr", "time": 1.0}]}
+    if "radiance" in frame.get("truth", {}):
+        out_frame["truth"] = {"radiance": os.path.relpath(frame["truth"]["radiance"], manifest_out.parent)}
+    return out_frame
+
+
+def merge_metrics(capture: Capture, merged: list[Merged], warnings: list[str]) -> dict:
+    """The merge's figures of hdr/metrics.json (all but ``ground_truth`` and the truth's): frames, saturated
+    pixels, negative values, dark frames (``degenerate``), the warnings (logged), and the 8-bit exposures'
+    response."""
+    manifest, path = capture.manifest, capture.path
+    negatives = Negatives.total([m.negatives for m in merged])
+    dark = [q for q, m in enumerate(merged) if m.dark]
+    metrics = {"frames": len(merged), "saturated_pixels": sum(m.saturated for m in merged),
                "negative_values": negatives.count, "dark_frames": len(dark)}
     if warnings:
         metrics["warnings"] = warnings
         for warning in warnings:
-            log.warning("%s: %s", manifest_path, warning)
+            log.warning("%s: %s", path, warning)
     if dark:
-        flag_degenerate(metrics, f"{len(dark)} of {len(frames)} frames are dark (no pixel above the noise floor; "
-                                 f"the first: frame {dark[0]}, {capture['frames'][dark[0]]['exposures'][0]['file']}): "
+        flag_degenerate(metrics, f"{len(dark)} of {len(merged)} frames are dark (no pixel above the noise floor; "
+                                 f"the first: frame {dark[0]}, {manifest['frames'][dark[0]]['exposures'][0]['file']}): "
                                  "the fit takes them as measurements of black reflectance in those light "
                                  "directions, which pulls the NDF and ks down there; if those lights did not fire, "
                                  "drop their frames from the manifest (or the .lp) and re-run from hdr", log)
     if negatives.count:
         log.warning("%d exposure values are negative (first in %s): taken as read noise around the black "
                     "level, below the noise floor, and clipped to 0", negatives.count, negatives.first_file)
-    if response is not None:
-        metrics["exposure_bits"] = 8
-        if transfer is not None:
-            metrics["transfer"] = {"declared": transfer.to_json(), "description": transfer.describe(),
-                                   "black_level": black_level}
-            method = f"declared transfer: {transfer.describe()}, black level {black_level:g}"
-        else:
-            method = "Debevec and Malik 1997 (cv2.createCalibrateDebevec)"
-        metrics["response"] = {"method": method, "scale_from": list(response.scale_from),
-                               "sensor": asdict(sensor), **response.to_json()}
-    if errors:
-        metrics["median_rel_error"] = float(np.median(np.concatenate(errors)))
-        log.info("HDR median relative error against the true radiance: %.5f", metrics["median_rel_error"])
-    write_json(outputs.metrics, metrics)
+    if capture.response is not None:
+        metrics.update(_response_metrics(capture))
+    return metrics
 
 
+def _response_metrics(capture: Capture) -> dict:
+    """The 8-bit exposures' figures: their bits, the declared transfer and black level, the response curve."""
+    metrics = {"exposure_bits": 8}
+    transfer, black_level = capture.transfer, capture.black_level
+    if transfer is not None:
+        metrics["transfer"] = {"declared": transfer.to_json(), "description": transfer.describe(),
+                               "black_level": black_level}
+        method = f"declared transfer: {transfer.describe()}, black level {black_level:g}"
+    else:
+        method = "Debevec and Malik 1997 (cv2.createCalibrateDebevec)"
+    metrics["response"] = {"method": method, "scale_from": list(capture.response.scale_from),
+                           "sensor": asdict(capture.sensor), **capture.response.to_json()}
+    return metrics
+
+
+# ---------------------------------------------------------------------------- truth
+def frame_truth_errors(frame: dict, merged: np.ndarray, saturated: np.ndarray, times: np.ndarray,
+                       noise_floor: float) -> np.ndarray | None:
+    """A virtual capture's frame: the relative errors of its merged radiance against the true one (None
+    without truth), on the pixels above the noise floor in the longest exposure and not clipped in all
+    (4096 at most, strided). Taken while the frame is merged, not read back after: the frames are streamed."""
+    if "radiance" not in frame.get("truth", {}):
+        return None
+    truth = read_rgb(frame["truth"]["radiance"])
+    above_floor = truth * times.max() > noise_floor
+    return relative_errors(merged, truth, above_floor & ~saturated[..., None], sample=4096)
+
+
+def truth_scores(merged: list[Merged]) -> dict:
+    """The merged frames' median relative error against the true radiance (:func:`frame_truth_errors`); {}
+    for a real capture."""
+    errors = [m.errors for m in merged if m.errors is not None]
+    if not errors:
+        return {}
+    scores = {"median_rel_error": float(np.median(np.concatenate(errors)))}
+    log.info("HDR median relative error against the true radiance: %.5f", scores["median_rel_error"])
+    return scores
+
+
+# ---------------------------------------------------------------------------- helpers
 def _check_lights(capture: dict, manifest_path: Path) -> None:
     """The method interpolates each point's samples over one triangulation of the lights in their plane
     (:class:`facetsynth.lightplane.LightTriangulation`, resample): lights that span no area (fewer than 3,
@@ -204,10 +293,9 @@ def _check_lights(capture: dict, manifest_path: Path) -> None:
 
 
 class Merged(NamedTuple):
-    """One merged frame: its manifest entry, saturated pixel count, its exposures' negative values, its
-    relative errors against the truth (None without truth), whether it is dark, and its saturated pixels
-    among those that see the sample (:func:`facetsynth.plausibility.check_clipping`)."""
-    frame: dict
+    """One merged frame's figures: its saturated pixel count, its exposures' negative values, its relative
+    errors against the truth (None without truth, :func:`frame_truth_errors`), whether it is dark, and its
+    saturated pixels among those that see the sample (:func:`facetsynth.plausibility.check_clipping`)."""
     saturated: int
     negatives: "Negatives"
     errors: np.ndarray | None

@@ -14,6 +14,7 @@ from ..fileio import atomic_dir, file_key, read_frame, read_rgb, write_exr, writ
 from ..frames import map_frames
 from ..metrics import marker_centroids, relative_errors
 from ..errors import InputError
+from ..camera import Camera
 from ..plane import PlaneGrid
 from ..rectify import native_resolution, visible_cells, warp_to_plane
 from ..render import radiance
@@ -47,7 +48,8 @@ class Settings(StageSettings):
 
 def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threads: int = 1) -> None:
     """Load, warp, write: every HDR frame of ``inputs.manifest`` onto a ``settings.resolution``-cell-wide grid
-    over the sample.
+    over the sample; for a virtual capture, the registration and the rectified radiance scored against the
+    truth (:func:`truth_scores`).
 
     ``resolution`` "auto": the grid with as many cells as camera pixels see the sample
     (:func:`facetsynth.rectify.native_resolution`), logged; ``resolution_rule`` in the metrics says which.
@@ -58,21 +60,39 @@ def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threa
     ``visible`` cells. Cells are square; rows follow from the sample's aspect. Frames are warped on
     ``threads`` threads.
     """
-    hdr_manifest, resolution, filtername = inputs.manifest, settings.resolution, settings.filter
-    capture = manifest_io.load(hdr_manifest)
+    capture = manifest_io.load(inputs.manifest)
     camera = manifest_io.camera(capture)
+    grid, rule = plane_grid(capture, camera, settings.resolution, inputs.manifest)
+    visible = visible_cells(camera, grid)
+    frames = warp_frames(capture, camera, grid, settings.filter, Path(outputs.frames), inputs.manifest, threads)
+    write_geometry(capture, camera, grid, visible, frames, Path(outputs.geometry))
+    metrics = {"ground_truth": manifest_io.has_truth(capture), "cols": grid.cols, "rows": grid.rows,
+               "resolution_rule": rule, "visible_fraction": float(visible.mean())}
+    write_json(outputs.metrics, {**metrics, **truth_scores(capture, camera, grid, visible, Path(outputs.frames))})
+
+
+def plane_grid(capture: dict, camera: Camera, resolution: int | str, manifest: Path) -> tuple[PlaneGrid, str]:
+    """The grid over the sample, ``resolution`` cells across (square cells, rows from the sample's aspect), and
+    the rule that chose it: "fixed", or "auto" (as many cells as camera pixels see the sample, logged; a
+    camera that cannot tell is an InputError naming the HDR ``manifest``)."""
     width, height = capture["sample"]["width"], capture["sample"]["height"]
     rule = "fixed"
     if resolution == "auto":
         try:
             resolution, rule = native_resolution(camera, width, height), "auto"
         except InputError as error:
-            raise InputError(hdr_manifest, error.problem) from None
+            raise InputError(manifest, error.problem) from None
         log.info("resolution auto: %d cells across, as many cells as camera pixels see the sample", resolution)
-    grid = PlaneGrid(width, height, cols=resolution, rows=max(1, int(round(resolution * height / width))))
-    visible = visible_cells(camera, grid)
-    frames_dir, geometry_out = Path(outputs.frames), Path(outputs.geometry)
-    key = {"hdr": file_key(hdr_manifest), "grid": grid.to_dict(), "filter": filtername}
+    return PlaneGrid(width, height, cols=resolution, rows=max(1, int(round(resolution * height / width)))), rule
+
+
+def warp_frames(capture: dict, camera: Camera, grid: PlaneGrid, filtername: str, frames_dir: Path, manifest: Path,
+                threads: int = 1) -> list[dict]:
+    """Every HDR frame warped onto ``grid`` (OpenImageIO filter ``filtername``,
+    :func:`facetsynth.rectify.warp_to_plane`) into ``frames_dir/NNNN.exr`` on ``threads`` threads, published
+    whole (:func:`facetsynth.fileio.atomic_dir`: an interrupted run resumes, skipping the frames already
+    warped); returns each frame's geometry entry (its file, relative to the geometry's folder, and light)."""
+    key = {"hdr": file_key(manifest), "grid": grid.to_dict(), "filter": filtername}
     with atomic_dir(frames_dir, key) as staging:
 
         def rectify_frame(job: tuple[int, dict]) -> dict:
@@ -85,7 +105,14 @@ def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threa
                           precision="float24")
             return {"file": f"{frames_dir.name}/{q:04d}.exr", "light": frame["light"]}
 
-        frames = map_frames(rectify_frame, list(enumerate(capture["frames"])), threads, "rectify")
+        return map_frames(rectify_frame, list(enumerate(capture["frames"])), threads, "rectify")
+
+
+def write_geometry(capture: dict, camera: Camera, grid: PlaneGrid, visible: np.ndarray, frames: list[dict],
+                   geometry_out: Path) -> None:
+    """rectify/geometry.json: the grid, the view point, the ``visible`` cells, the frames, what the capture
+    assumed, its reference region, its camera, and a virtual capture's true scene (relative to
+    ``geometry_out``'s folder)."""
     geometry = {"grid": grid.to_dict(), "view_point": camera.view_point.tolist(),
                 "visible": visible.astype(int).tolist(), "frames": frames, "assumed": capture.get("assumed", []),
                 **({"reference_region": capture["reference_region"]} if "reference_region" in capture else {}),
@@ -95,15 +122,16 @@ def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threa
         geometry["truth"] = {"scene": os.path.relpath(capture["truth"]["scene"], geometry_out.parent)}
     write_json(geometry_out, geometry)
 
-    metrics = {"ground_truth": manifest_io.has_truth(capture), "cols": grid.cols, "rows": grid.rows,
-               "resolution_rule": rule, "visible_fraction": float(visible.mean())}
-    if metrics["ground_truth"]:
-        metrics.update(_accuracy(Scene.load(capture["truth"]["scene"]), grid, camera.view_point, capture,
-                                 frames_dir, visible))
-        log.info("registration error %.3f px (max %.3f), radiance median rel. error %.4f",
-                 metrics["registration_error_px"], metrics["registration_error_px_max"],
-                 metrics["radiance_median_rel_error"])
-    write_json(outputs.metrics, metrics)
+
+def truth_scores(capture: dict, camera: Camera, grid: PlaneGrid, visible: np.ndarray, frames_dir: Path) -> dict:
+    """A virtual capture's rectified frames in ``frames_dir`` against its true scene (:func:`_accuracy`): the
+    registration error on the markers and the radiance error, logged; {} for a real capture."""
+    if not manifest_io.has_truth(capture):
+        return {}
+    scores = _accuracy(Scene.load(capture["truth"]["scene"]), grid, camera.view_point, capture, frames_dir, visible)
+    log.info("registration error %.3f px (max %.3f), radiance median rel. error %.4f",
+             scores["registration_error_px"], scores["registration_error_px_max"], scores["radiance_median_rel_error"])
+    return scores
 
 
 def _accuracy(scene: Scene, grid: PlaneGrid, view: np.ndarray, capture: dict, frames_dir: Path,

@@ -22,6 +22,7 @@ import logging
 import os
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -97,9 +98,19 @@ class Settings(StageSettings):
                                            # (a dome) only (AUTO_NORMALS), True always, False: the plane's +z
 
 
+class Separated(NamedTuple):
+    """What :func:`fit` returns beside the tables it writes: kd (P, 3), which points show specular signal (P,),
+    the shading normals (P, 3) and the lights' estimated intensity factors (None when they were stated)."""
+    kd: np.ndarray
+    signal: np.ndarray
+    normals: np.ndarray
+    factors: Factors | None
+
+
 def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threads: int = 1) -> None:
     """Load, separate, write: per point and light of ``inputs.geometry``, rho by eq. 8, kd = pi rho_d by eq. 9
-    (:func:`~facetsynth.separation.diffuse_level`), rho~_s = rho - rho_d.
+    (:func:`~facetsynth.separation.diffuse_level`), rho~_s = rho - rho_d; for a virtual capture, kd scored
+    against the truth (:func:`truth_scores`).
 
     Writes ``kd`` (EXR on the rectified grid), the specular residual (P, F, 3) in half floats
     (:func:`~facetsynth.fileio.as_half`) and the sample validity (P, F) as memory-mappable .npy
@@ -109,73 +120,80 @@ def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threa
     Frames are read on ``threads`` threads. ``outputs.normals``: the shading normals (P, 3) float32 .npy;
     ``outputs.geometry``: rectify's geometry with them (the later stages' geometry).
     """
-    capture = RectifiedCapture.load(inputs.geometry)
-    g = read_json(inputs.geometry)
-    estimate_intensities = "reference_region" in g or "intensities" in g.get("assumed", [])
+    capture, g = load(inputs)
     settings = replace(settings, shading_normals=uses_normals(settings.shading_normals, capture))
-    n_points, n_frames = capture.n_points, len(capture.frame_files)
-    with atomic_path(outputs.specular, suffix=".npy") as tmp_spec, \
-            atomic_path(outputs.valid, suffix=".npy") as tmp_valid:
-        # eq. 8's samples in float32 beside the output (a temporary: swept if this process dies), so that
-        # eq. 9's kd is not rounded to half floats; the residual goes out in half floats
+    separated = fit(capture, settings, outputs.specular, outputs.valid, threads,
+                    intensities_from=g if estimates_intensities(g) else None)
+    write(separated, capture, g, inputs, outputs, settings.lowest)
+    write_json(outputs.metrics, {"ground_truth": capture.truth_scene is not None,
+                                 **fit_metrics(separated, capture, g, settings), **truth_scores(separated.kd, capture)})
+
+
+# ---------------------------------------------------------------------------- load
+def load(inputs: Inputs) -> tuple[RectifiedCapture, dict]:
+    """rectify's geometry: the capture (:class:`~facetsynth.stages.common.RectifiedCapture`) and the file as
+    read (written again with the normals, :func:`_write_geometry`)."""
+    return RectifiedCapture.load(inputs.geometry), read_json(inputs.geometry)
+
+
+def estimates_intensities(g: dict) -> bool:
+    """Whether the stage estimates the lights' intensities (module docstring): the geometry ``g`` of a capture
+    that states none (``assumed`` lists ``intensities``), or names a ``reference_region``."""
+    return "reference_region" in g or "intensities" in g.get("assumed", [])
+
+
+def uses_normals(setting: bool | str, capture: RectifiedCapture) -> bool:
+    """Whether the stage estimates shading normals: config ``separate.shading_normals``, "auto" (AUTO_NORMALS)
+    for captures whose every light is directional."""
+    if setting == "auto":
+        return bool(np.all(capture.lights[:, 3] == 0))
+    return bool(setting)
+
+
+# ---------------------------------------------------------------------------- separate
+def fit(capture: RectifiedCapture, settings: Settings, specular_out: str | Path, valid_out: str | Path,
+        threads: int = 1, intensities_from: dict | None = None) -> Separated:
+    """The separation: eq. 8's samples (:func:`eq8_samples`), the shading normals (:func:`shading_normals`,
+    with ``settings.shading_normals``), the lights' intensity factors (:func:`_light_factors`; only with
+    ``intensities_from``, the geometry of a capture without intensities: from its ``reference_region`` when it
+    names one, else from the whole sample), eq. 9 (:func:`eq9_residuals`). The specular residual and the
+    validity tables are written as they are made, each whole or not at all, to ``specular_out`` and
+    ``valid_out``; eq. 8's samples in float32 beside them (a temporary: swept if this process dies), so that
+    eq. 9's kd is not rounded to half floats."""
+    with atomic_path(specular_out, suffix=".npy") as tmp_spec, atomic_path(valid_out, suffix=".npy") as tmp_valid:
         scratch = tmp_spec.with_name(tmp_spec.name + ".eq8.npy")
         try:
-            kd, signal, normals, factors = _separate(capture, settings, threads, scratch, tmp_spec, tmp_valid,
-                                                     g if estimate_intensities else None)
+            return _separate(capture, settings, threads, scratch, tmp_spec, tmp_valid, intensities_from)
         finally:
             scratch.unlink(missing_ok=True)
-    if outputs.normals is not None:
-        write_npy(outputs.normals, normals.astype(np.float32))
-    if outputs.geometry is not None:
-        _write_geometry(g, Path(inputs.geometry).parent, outputs.geometry, outputs.normals, factors)
-    write_exr(outputs.kd, {"RGB": kd.reshape(capture.grid.rows, capture.grid.cols, 3)},
-              {"quantity": "kd (diffuse albedo), paper 002 eq. 9" + (
-                  f" (the mean of the lowest {100 * settings.lowest:g} % of the qualifying samples)"
-                  if settings.lowest else "")})
-
-    dark = int((kd.sum(axis=1) == 0).sum())
-    metrics = {"ground_truth": capture.truth_scene is not None, "points": n_points, "frames": n_frames,
-               "threshold": settings.threshold, "lowest": settings.lowest,
-               "heldout_frames": int(heldout_lights(n_frames, settings.heldout_every).sum()),
-               "points_without_diffuse_estimate": dark, "shading_normals": settings.shading_normals,
-               **_normal_metrics(normals, capture)}
-    if factors is not None:
-        metrics["light_factors"] = {"rgb": factors.rgb.round(4).tolist(), "spread": factors.spread.round(4).tolist(),
-                                    "fallback": factors.fallback.tolist(), "definition": FACTORS_DEFINITION,
-                                    "from": ("the reference region " + str(g["reference_region"])
-                                             if "reference_region" in g else "the whole sample's diffuse part")}
-        log.info("light factors (estimated, mean 1 per channel): luminance %.3f-%.3f, %d light(s) from their "
-                 "neighbours",
-                 factors.rgb.mean(axis=1)[~factors.fallback].min(initial=1.0),
-                 factors.rgb.mean(axis=1)[~factors.fallback].max(initial=1.0), int(factors.fallback.sum()))
-    lit = capture.visible & (kd.sum(axis=1) > 0)
-    metrics["specular_signal_fraction"] = float(signal[lit].mean()) if lit.any() else 0.0
-    if metrics["specular_signal_fraction"] < MIN_SIGNAL_FRACTION:
-        flag_degenerate(metrics, f"no specular signal: {100 * metrics['specular_signal_fraction']:.1f} % of the "
-                        f"lit points have a highlight of at least {SIGNAL_RATIO} x their diffuse level (needed: "
-                        f"{100 * MIN_SIGNAL_FRACTION:.0f} %); the sample is matte under these lights, or the lights "
-                        "miss its highlights: only kd is supported by the capture, the specular fit is noise", log)
-    truth = capture.truth()
-    if truth is not None:
-        # Points whose true BRDF is not eq. 6 (measured, coated, ...) have no true kd to score against.
-        select = (capture.visible & truth.analytic)[:, None] & (truth.kd > 0)
-        metrics["kd_median_rel_error"] = (float(np.median(np.abs(kd - truth.kd)[select] / truth.kd[select]))
-                                          if select.any() else None)
-        if select.any():
-            log.info("kd median relative error %.4f", metrics["kd_median_rel_error"])
-    write_json(outputs.metrics, metrics)
 
 
 def _separate(capture: RectifiedCapture, settings: Settings, threads: int, scratch: Path, specular_out: Path,
-              valid_out: Path, intensities_from: dict | None = None) -> tuple:
-    """Eq. 8 frame by frame into ``scratch``, then eq. 9 tile by tile into the residual and validity files;
-    returns kd (P, 3), which points show specular signal (P,), the shading normals (P, 3) and the lights'
-    estimated intensity factors (:class:`~facetsynth.light_factors.Factors`; None unless
-    ``intensities_from``, the geometry file of a capture without intensities: from its ``reference_region``
-    when it names one, else from the whole sample)."""
+              valid_out: Path, intensities_from: dict | None = None) -> Separated:
+    """:func:`fit` into the files ``scratch`` (eq. 8), ``specular_out`` and ``valid_out``."""
+    rho, valid = eq8_samples(capture, heldout_lights(len(capture.frame_files), settings.heldout_every), scratch,
+                             valid_out, threads)
+    n_points = capture.n_points
+    normals, albedo = np.tile(FLAT, (n_points, 1)), np.zeros(n_points)
+    diffuse = np.zeros(n_points, bool)        # points that tell their normal from the diffuse part
+    if settings.shading_normals:
+        normals, albedo, diffuse = shading_normals(capture, rho, valid, threads)
+    factors = None
+    if intensities_from is not None:
+        factors = _light_factors(rho, valid, capture, normals, capture.visible & diffuse,
+                                 intensities_from.get("reference_region"))
+    kd, signal = eq9_residuals(capture, settings, rho, valid, normals, albedo, factors, specular_out, threads)
+    return Separated(kd, signal, normals, factors)
+
+
+def eq8_samples(capture: RectifiedCapture, held: np.ndarray, scratch: Path, valid_out: Path,
+                threads: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. 8 frame by frame, with the plane's normal: rho (P, F, 3) float32 memory-mapped in ``scratch``, and the
+    samples' validity (P, F) memory-mapped in ``valid_out``: visible, not saturated, not a ``held`` light.
+    Frames are read on ``threads`` threads and written FRAME_BLOCK at a time as one block of columns: a frame
+    alone would touch every page of the (P, F, 3) file for 12 bytes a point."""
     n_points, n_frames = capture.n_points, len(capture.frame_files)
     points = capture.points
-    held = heldout_lights(n_frames, settings.heldout_every)
     rho = np.lib.format.open_memmap(scratch, mode="w+", dtype=np.float32, shape=(n_points, n_frames, 3))
     valid = np.lib.format.open_memmap(valid_out, mode="w+", dtype=bool, shape=(n_points, n_frames))
 
@@ -185,8 +203,6 @@ def _separate(capture: RectifiedCapture, settings: Settings, threads: int, scrat
                                  capture.lights[q:q + 1], capture.light_intensities[q:q + 1])
         return sample[:, 0].astype(np.float32), capture.visible & ~saturated.ravel() & ~held[q]
 
-    # written FRAME_BLOCK frames at a time as one block of columns: a frame alone would touch every
-    # page of the (P, F, 3) file for 12 bytes a point
     block = []
     for q, samples in enumerate(imap(frame_samples, range(n_frames), threads, "separate: eq. 8")):
         block.append(samples)
@@ -197,10 +213,17 @@ def _separate(capture: RectifiedCapture, settings: Settings, threads: int, scrat
             block = []
     rho.flush()
     valid.flush()
-    kd = np.zeros((n_points, 3))
-    signal = np.zeros(n_points, bool)
-    normals = np.tile(FLAT, (n_points, 1))
-    albedo = np.zeros(n_points)
+    return rho, valid
+
+
+def shading_normals(capture: RectifiedCapture, rho, valid, threads: int = 1) -> tuple[np.ndarray, ...]:
+    """The shading normals (P, 3) from eq. 8's samples ``rho`` and their validity, tile by tile on ``threads``
+    threads: robust photometric stereo on the diffuse part where it tells (:func:`facetsynth.normals.
+    photometric_normals`, ``diffuse``), else the highlights' where they glint (:func:`facetsynth.normals.
+    highlight_normals`), then the relief's common tilt removed (:func:`facetsynth.normals.relief_normals`).
+    Returns the normals, the diffuse part's albedo (P,) and ``diffuse`` (P,) bool; logged."""
+    n_points, points = capture.n_points, capture.points
+    normals, albedo = np.tile(FLAT, (n_points, 1)), np.zeros(n_points)
     glints, contrast = np.tile(FLAT, (n_points, 1)), np.zeros(n_points)
 
     def normal_tile(tile: slice) -> None:
@@ -210,20 +233,29 @@ def _separate(capture: RectifiedCapture, settings: Settings, threads: int, scrat
         normals[tile], albedo[tile] = photometric_normals(b, wi, view, ok)
         glints[tile], contrast[tile] = highlight_normals(b, half_vector(wi, view[:, None, :]), ok)
 
-    diffuse = np.zeros(n_points, bool)        # points that tell their normal from the diffuse part
-    if settings.shading_normals:
-        map_frames(normal_tile, list(tiles(n_points)), threads, "separate: shading normals", unit="tile")
-        diffuse = diffuse_enough(albedo)
-        glinting = contrast >= HIGHLIGHT_CONTRAST
-        normals[:] = np.where((~diffuse & glinting)[:, None], glints, normals)
-        normals[:], relief = relief_normals(normals, capture.visible & (diffuse | glinting))
-        log.info("shading normals from the diffuse part at %.0f %% of the points, from highlights at %.0f %%",
-                 100 * np.mean(diffuse[capture.visible]), 100 * np.mean((~diffuse & glinting)[capture.visible]))
-        log.info("shading normals: %s", relief)
-    factors = None
-    if intensities_from is not None:
-        factors = _light_factors(rho, valid, capture, normals, capture.visible & diffuse,
-                                 intensities_from.get("reference_region"))
+    map_frames(normal_tile, list(tiles(n_points)), threads, "separate: shading normals", unit="tile")
+    diffuse = diffuse_enough(albedo)
+    glinting = contrast >= HIGHLIGHT_CONTRAST
+    normals[:] = np.where((~diffuse & glinting)[:, None], glints, normals)
+    normals[:], relief = relief_normals(normals, capture.visible & (diffuse | glinting))
+    log.info("shading normals from the diffuse part at %.0f %% of the points, from highlights at %.0f %%",
+             100 * np.mean(diffuse[capture.visible]), 100 * np.mean((~diffuse & glinting)[capture.visible]))
+    log.info("shading normals: %s", relief)
+    return normals, albedo, diffuse
+
+
+def eq9_residuals(capture: RectifiedCapture, settings: Settings, rho, valid, normals: np.ndarray,
+                  albedo: np.ndarray, factors: Factors | None, specular_out: Path,
+                  threads: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. 9 tile by tile on ``threads`` threads: eq. 8's samples ``rho`` divided by the lights' ``factors``
+    (if any), re-read in each point's shading frame (with ``settings.shading_normals``: :func:`_in_shading_frame`,
+    which also updates ``valid``), kd = pi rho_d (:func:`facetsynth.separation.diffuse_level`), and the specular
+    residual rho - rho_d in half floats into ``specular_out`` (P, F, 3). Returns kd (P, 3) and which points show
+    specular signal (P,): a residual of at least SIGNAL_RATIO x the diffuse level."""
+    n_points, n_frames = capture.n_points, len(capture.frame_files)
+    points = capture.points
+    kd = np.zeros((n_points, 3))
+    signal = np.zeros(n_points, bool)
     scale = np.ones((n_frames, 3)) if factors is None else factors.rgb
     residuals = np.lib.format.open_memmap(specular_out, mode="w+", dtype=HALF, shape=(n_points, n_frames, 3))
 
@@ -245,9 +277,69 @@ def _separate(capture: RectifiedCapture, settings: Settings, threads: int, scrat
 
     map_frames(separate_tile, list(tiles(n_points)), threads, "separate: eq. 9", unit="tile")
     residuals.flush()
-    return kd, signal, normals, factors
+    return kd, signal
 
 
+# ---------------------------------------------------------------------------- write
+def write(separated: Separated, capture: RectifiedCapture, g: dict, inputs: Inputs, outputs: Outputs,
+          lowest: float) -> None:
+    """The shading normals (``outputs.normals``), rectify's geometry ``g`` with them and the estimated
+    intensities (``outputs.geometry``, :func:`_write_geometry`; each None: not written) and kd (EXR on the
+    rectified grid; eq. 9 with the ``lowest`` share of the samples, settings.lowest)."""
+    if outputs.normals is not None:
+        write_npy(outputs.normals, separated.normals.astype(np.float32))
+    if outputs.geometry is not None:
+        _write_geometry(g, Path(inputs.geometry).parent, outputs.geometry, outputs.normals, separated.factors)
+    write_exr(outputs.kd, {"RGB": separated.kd.reshape(capture.grid.rows, capture.grid.cols, 3)},
+              {"quantity": "kd (diffuse albedo), paper 002 eq. 9" + (
+                  f" (the mean of the lowest {100 * lowest:g} % of the qualifying samples)" if lowest else "")})
+
+
+def fit_metrics(separated: Separated, capture: RectifiedCapture, g: dict, settings: Settings) -> dict:
+    """The separation's figures of separate/metrics.json: the points without a diffuse estimate, the normals'
+    tilt, the lights' factors (logged), the fraction of lit points with specular signal (``degenerate`` below
+    MIN_SIGNAL_FRACTION)."""
+    kd, factors, n_frames = separated.kd, separated.factors, len(capture.frame_files)
+    metrics = {"points": capture.n_points, "frames": n_frames, "threshold": settings.threshold,
+               "lowest": settings.lowest, "heldout_frames": int(heldout_lights(n_frames, settings.heldout_every).sum()),
+               "points_without_diffuse_estimate": int((kd.sum(axis=1) == 0).sum()),
+               "shading_normals": settings.shading_normals, **_normal_metrics(separated.normals, capture)}
+    if factors is not None:
+        metrics["light_factors"] = {"rgb": factors.rgb.round(4).tolist(), "spread": factors.spread.round(4).tolist(),
+                                    "fallback": factors.fallback.tolist(), "definition": FACTORS_DEFINITION,
+                                    "from": ("the reference region " + str(g["reference_region"])
+                                             if "reference_region" in g else "the whole sample's diffuse part")}
+        log.info("light factors (estimated, mean 1 per channel): luminance %.3f-%.3f, %d light(s) from their "
+                 "neighbours",
+                 factors.rgb.mean(axis=1)[~factors.fallback].min(initial=1.0),
+                 factors.rgb.mean(axis=1)[~factors.fallback].max(initial=1.0), int(factors.fallback.sum()))
+    lit = capture.visible & (kd.sum(axis=1) > 0)
+    metrics["specular_signal_fraction"] = float(separated.signal[lit].mean()) if lit.any() else 0.0
+    if metrics["specular_signal_fraction"] < MIN_SIGNAL_FRACTION:
+        flag_degenerate(metrics, f"no specular signal: {100 * metrics['specular_signal_fraction']:.1f} % of the "
+                        f"lit points have a highlight of at least {SIGNAL_RATIO} x their diffuse level (needed: "
+                        f"{100 * MIN_SIGNAL_FRACTION:.0f} %); the sample is matte under these lights, or the lights "
+                        "miss its highlights: only kd is supported by the capture, the specular fit is noise", log)
+    return metrics
+
+
+# ---------------------------------------------------------------------------- truth
+def truth_scores(kd: np.ndarray, capture: RectifiedCapture) -> dict:
+    """kd's median relative error against a virtual capture's truth, over the visible points whose true BRDF is
+    eq. 6 (measured, coated, ... have no true kd) and channels with a true kd > 0 (None: no such point); {} for
+    a real capture."""
+    truth = capture.truth()
+    if truth is None:
+        return {}
+    select = (capture.visible & truth.analytic)[:, None] & (truth.kd > 0)
+    scores = {"kd_median_rel_error": (float(np.median(np.abs(kd - truth.kd)[select] / truth.kd[select]))
+                                      if select.any() else None)}
+    if select.any():
+        log.info("kd median relative error %.4f", scores["kd_median_rel_error"])
+    return scores
+
+
+# ---------------------------------------------------------------------------- helpers
 def _light_factors(rho, valid, capture: RectifiedCapture, normals: np.ndarray, trusted: np.ndarray,
                    reference: dict | None = None):
     """The lights' RGB factors (:func:`facetsynth.light_factors.estimate`) from eq. 8's samples ``rho`` (P, F, 3)
@@ -279,14 +371,6 @@ def _light_factors(rho, valid, capture: RectifiedCapture, normals: np.ndarray, t
     if np.all(capture.lights[:, 3] == 0):      # directional: the held-out lights' factors from their neighbours
         found = replace(found, rgb=fill_from_neighbours(capture.lights[:, :3], found.rgb, found.fallback))
     return found
-
-
-def uses_normals(setting: bool | str, capture: RectifiedCapture) -> bool:
-    """Whether the stage estimates shading normals: config ``separate.shading_normals``, "auto" (AUTO_NORMALS)
-    for captures whose every light is directional."""
-    if setting == "auto":
-        return bool(np.all(capture.lights[:, 3] == 0))
-    return bool(setting)
 
 
 def _in_shading_frame(rho: np.ndarray, wi: np.ndarray, cos: np.ndarray, albedo: np.ndarray,
