@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from facetsynth.refine import NormalSums, radiance_weights, solve
+from facetsynth.cluster import material_groups
+from facetsynth.refine import NormalSums, owned_kd, radiance_weights, solve
 from facetsynth.selfcheck import FrameScores, heldout_lights, relit_frames
 
 
@@ -227,3 +228,21 @@ def test_a_table_fitted_to_samples_of_turned_points_recovers_the_lobe_between_on
     # plus nothing (exact samples of a bilinear table: zero)
     pred = coef * np.sum(fitted[cells] * w, axis=-1)[:, None]
     assert np.sqrt(np.sum((pred - r) ** 2) / np.sum(r ** 2)) < 1e-3
+
+
+def test_materials_group_representatives_by_the_kd_of_the_points_they_own():
+    """A representative whose own point's separation is off (kd 0.117 where its points have 0.150, as on the
+    Mitsuba ggx-tiles capture) is grouped with the material its points belong to; by its own point's kd it
+    would be a material of its own (log distance 0.25 > log(1.25))."""
+    kd = np.full((9, 3), 0.15)
+    kd[6:] = 0.05                                       # a darker material
+    kd[4] = 0.117                                       # representative 1's own point
+    owner = np.array([0, 0, 0, 1, 1, 1, 2, 2, 2])
+    representatives = np.array([0, 4, 7])
+    owned = owned_kd(kd, owner, representatives)
+    np.testing.assert_allclose(owned, [[0.15] * 3, [0.15] * 3, [0.05] * 3])
+    assert material_groups(owned, 0.25).tolist() == [0, 0, 1]
+    own = material_groups(kd[representatives], 0.25)
+    assert own[0] != own[1]                             # what grouping by the representatives' own kd did
+    lonely = owned_kd(kd, np.zeros(9, np.intp), representatives)   # representatives 1, 2 own no point
+    np.testing.assert_allclose(lonely[1:], kd[representatives[1:]])

@@ -219,3 +219,16 @@ def solve_table(m: np.ndarray, v: np.ndarray, prior: np.ndarray, ridge: float) -
     b = v + lam * prior
     table = np.linalg.solve(a, b)
     return np.clip(np.where(np.isfinite(table), table, prior), 0.0, None)   # a non-finite cell keeps the prior
+
+
+def owned_kd(kd: np.ndarray, owner: np.ndarray, representatives: np.ndarray) -> np.ndarray:
+    """(R, 3): each representative's kd as the median over the points it owns (``owner`` (P,): each point's
+    representative of largest eq. 18 weight; ``kd`` (P, 3)); the representative's own point's
+    (``representatives`` (R,) point numbers) where it owns none. What groups representatives into materials:
+    one point's kd is one point's separation, and the ggx-tiles capture's representative 9 had kd 0.117 (its
+    4681 points' median 0.150) and ks 0, so its points stayed a material of their own (issue 29)."""
+    out = np.asarray(kd, float)[np.asarray(representatives, np.intp)].copy()
+    owner = np.asarray(owner, np.intp)
+    for k in np.unique(owner):
+        out[k] = np.median(np.asarray(kd, float)[owner == k], axis=0)
+    return out

@@ -30,8 +30,8 @@ from ..microfacet import fresnel, half_vector
 from ..cluster import material_groups, relative_rotation
 from ..synthesis import pairwise_distance, rotate_tuple
 from ..params import normalise, projected_area
-from ..refine import (NormalSums, add_table_normal_equations, best_turns, parabola_minimum, radiance_weights, solve,
-                      solve_table, stretch)
+from ..refine import (NormalSums, add_table_normal_equations, best_turns, owned_kd, parabola_minimum,
+                      radiance_weights, solve, solve_table, stretch)
 
 from ..svbrdf import SVBRDF
 from .common import (TILE_POINTS, RectifiedCapture, RuleFiles, StageSettings, analytic_points, median_rel_error,
@@ -73,6 +73,7 @@ class Settings(StageSettings):
     material_margin: float = 0.005    # a choice replaces the pipeline's where it lowers their error by this share
     material_tolerance: float = 0.25  # config params.material_tolerance: representatives' kd within it: one material
     share_distance: float = 0.05      # a material's representatives within this of its main one turned: that one
+    share_candidates: int = 3         # the representatives of most points tried as a material's main one
     turn_window_deg: float = 22.5     # each point's NDF: its best representative turned within this either way (0: off)
     turn_margin: float = 0.01         # ... taken where it lowers the point's specular error by more than this share
 
@@ -138,74 +139,89 @@ def materials(model: SVBRDF, settings: Settings) -> tuple[np.ndarray, np.ndarray
     """The material of every representative (R,) (kd within ``material_tolerance``,
     :func:`facetsynth.cluster.material_groups`, as params groups them) and every point's representative of
     largest eq. 18 weight (P,)."""
+    owner = model.neighbours[np.arange(model.n_points), np.argmax(model.weights, axis=1)]
     reps = (np.arange(model.ndf.shape[0]) if model.representatives is None
             else np.asarray(model.representatives, np.intp))
-    owner = model.neighbours[np.arange(model.n_points), np.argmax(model.weights, axis=1)]
-    return material_groups(model.kd[reps], settings.material_tolerance), owner
+    return material_groups(owned_kd(model.kd, owner, reps), settings.material_tolerance), owner
 
 
 def share_representatives(model: SVBRDF, capture: RectifiedCapture, specular, valid,
                           settings: Settings) -> tuple[SVBRDF, list]:
     """One NDF per material, turned point by point: every representative of a material (grouped by kd) whose
-    completed NDF is the material's main one (the representative of most points) turned, within
-    ``settings.share_distance`` (eq. 15's relative distance after the best turn,
-    :func:`facetsynth.cluster.relative_rotation` over a half turn), hands its points to it with that turn
-    added to theirs. Synthesis completes each representative on its own, each normalisation carries its
-    own error, and ks made up for it cluster by cluster: steps in ks at every cluster border of one
-    material (the demo's copper: nine representatives, one NDF turned; issue 29). An isotropic main
-    NDF (turning it a quarter changes it by less than ``share_distance``) passes on no turn. The sharing is
-    taken where the samples do not disagree: on up to ``material_points`` of the material's points, each
-    turned as :func:`choose_turns` would, its squared error (:func:`fitted_error`) at most
-    ``material_margin`` above the pipeline's mixtures' (one NDF is the simpler model: a tie goes to it)."""
+    completed NDF is the material's main one turned, within ``settings.share_distance`` (eq. 15's relative
+    distance after the best turn, :func:`facetsynth.cluster.relative_rotation` over a half turn), hands its
+    points to it with that turn added to theirs. Synthesis completes each representative on its own, each
+    normalisation carries its own error, and ks made up for it cluster by cluster: steps in ks at every
+    cluster border of one material (the demo's copper: nine representatives, one NDF turned; issue 29). An
+    isotropic main NDF (turning it a quarter changes it by less than ``share_distance``) passes on no turn.
+
+    The samples choose: each of the ``share_candidates`` representatives of most points is tried as the
+    main one, on up to ``material_points`` of the material's points, each turned as :func:`choose_turns`
+    would, scored by its squared error (:func:`fitted_error`); the best is taken where it is at most
+    ``material_margin`` above the pipeline's mixtures' (one NDF is the simpler model: a tie goes to it).
+    The representative of most points need not be the one to share (ggx-tiles: representative 9, its own
+    point's ks 0, 0.11-0.17 from every other)."""
     material, owner = materials(model, settings)
     flat = isotropic(model, settings.share_distance)
     grid, d = model.grid, model.ndf.astype(float)
     full = np.ones(grid.shape)
     neighbours, weights = model.neighbours.copy(), model.weights.astype(float).copy()
     rotation = np.zeros(model.n_points) if model.rotation is None else model.rotation.astype(float)
+    counts = np.bincount(owner[capture.visible], minlength=len(d))
     records = []
 
-    def distance(j: int, main: int, sectors: float) -> float:
-        turned, conf = rotate_tuple(d[main], full, grid, sectors)
-        return float(pairwise_distance(d[j:j + 1], full[None], turned[None], conf[None], grid)[0, 0])
+    def shared_with(main: int, members: np.ndarray) -> tuple[tuple[np.ndarray, ...], list[dict]]:
+        """The mixtures, weights and turns with the members within share_distance of ``main`` handed to it,
+        and a record of each."""
+        phi, _ = relative_rotation(d[members], np.ones_like(d[members]), d[main], full, grid,
+                                   max_shift=grid.n_phi // 4)
+        nb, w, rot = neighbours.copy(), weights.copy(), rotation.copy()
+        shared = []
+        for j, turn_j in zip(members, phi):
+            turned, conf = rotate_tuple(d[main], full, grid, turn_j / grid.d_phi)
+            gap = float(pairwise_distance(d[j:j + 1], full[None], turned[None], conf[None], grid)[0, 0])
+            if j == main or gap >= settings.share_distance:
+                continue
+            points = np.flatnonzero(owner == j)
+            nb[points], w[points] = main, 0.0
+            w[points, 0] = 1.0
+            rot[points] += 0.0 if flat[main] else turn_j
+            shared.append({"representative": int(j), "turn_deg": round(float(np.degrees(turn_j)), 2),
+                           "distance": round(gap, 5), "points": int(points.size)})
+        return (nb, w, rot), shared
 
     for m in np.unique(material):
         members = np.flatnonzero(material == m)
         if members.size < 2:
             continue
-        main = members[np.argmax(np.bincount(owner[capture.visible], minlength=len(d))[members])]
-        round_lobe = bool(flat[main])
-        phi, _ = relative_rotation(d[members], np.ones_like(d[members]), d[main], full, grid,
-                                   max_shift=grid.n_phi // 4)
-        shared = []
-        trial_nb, trial_w, trial_rot = neighbours.copy(), weights.copy(), rotation.copy()
-        for j, turn_j in zip(members, phi):
-            gap = distance(j, main, turn_j / grid.d_phi)
-            if j == main or gap >= settings.share_distance:
-                continue
-            points = np.flatnonzero(owner == j)
-            trial_nb[points], trial_w[points] = main, 0.0
-            trial_w[points, 0] = 1.0
-            trial_rot[points] += 0.0 if round_lobe else turn_j
-            shared.append({"representative": int(j), "turn_deg": round(float(np.degrees(turn_j)), 2),
-                           "distance": round(gap, 5), "points": int(points.size)})
-        if not shared:
-            continue
-        # taken where the samples agree: both turned point by point on the material's sample of points
         _, index = material_points(capture, owner, members, settings.material_points)
-        trial = replace(model, neighbours=trial_nb, weights=trial_w, rotation=trial_rot)
-        errors = [fitted_error(choose_turns(candidate, capture, specular, valid, settings, points=index)[0],
-                               capture, specular, valid, index, settings.ridge) for candidate in (model, trial)]
-        taken = errors[1] <= (1.0 + settings.material_margin) * errors[0]
+
+        def error(candidate: SVBRDF) -> float:
+            """The squared error on the material's sample of points, each turned as choose_turns would."""
+            turned, _ = choose_turns(candidate, capture, specular, valid, settings, points=index)
+            return fitted_error(turned, capture, specular, valid, index, settings.ridge)
+
+        tried = []
+        for main in members[np.argsort(-counts[members], kind="stable")][:settings.share_candidates]:
+            arrays, shared = shared_with(main, members)
+            if shared:
+                trial = replace(model, neighbours=arrays[0], weights=arrays[1], rotation=arrays[2])
+                tried.append((error(trial), int(main), arrays, shared))
+        if not tried:
+            continue
+        pipeline = error(model)
+        best, main, arrays, shared = min(tried, key=lambda t: t[0])
+        taken = best <= (1.0 + settings.material_margin) * pipeline
         if taken:
-            neighbours, weights, rotation = trial_nb, trial_w, trial_rot
-        records.append({"material": int(m), "main": int(main), "isotropic": round_lobe, "shared": shared,
-                        "taken": bool(taken), "sse_relative": round(errors[1] / max(errors[0], 1e-300), 4)})
+            neighbours, weights, rotation = arrays
+        records.append({"material": int(m), "main": main, "isotropic": bool(flat[main]), "shared": shared,
+                        "taken": bool(taken), "sse_relative": round(best / max(pipeline, 1e-300), 4),
+                        "tried": {t[1]: round(t[0] / max(pipeline, 1e-300), 4) for t in tried}})
         log.info("material %d: %d of its %d other representatives are its main one (%d)%s turned: %s; squared "
-                 "error after the turn search %.4f of the pipeline's: %s", m, len(shared), members.size - 1, main,
-                 " (isotropic: not)" if round_lobe else "", [(r["representative"], r["turn_deg"], r["distance"])
-                                                            for r in shared],
-                 records[-1]["sse_relative"], "taken" if taken else "NOT taken")
+                 "error after the turn search %.4f of the pipeline's (main ones tried: %s): %s", m, len(shared),
+                 members.size - 1, main, " (isotropic: not)" if flat[main] else "",
+                 [(r["representative"], r["turn_deg"], r["distance"]) for r in shared], records[-1]["sse_relative"],
+                 records[-1]["tried"], "taken" if taken else "NOT taken")
     return replace(model, neighbours=neighbours, weights=weights, rotation=rotation), records
 
 
