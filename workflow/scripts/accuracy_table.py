@@ -4,7 +4,8 @@
     python workflow/scripts/accuracy_table.py config/samples-accuracy.tsv [results]
 
 Prints one markdown row per sample that has results: held-out relative L2 of radiance (all, and the
-specular part where the truth is eq. 6), ours against the per-point Ward baseline on the same views, the
+specular part where the truth is eq. 6), ours against the per-point Ward baseline on the same views; the
+self-check's (no truth: the fitting view relit, and the held-out lights, selfcheck/metrics.json); the
 representatives, and the largest within-region median NDF spread.
 """
 
@@ -25,18 +26,20 @@ def cell(x, digits=3) -> str:
 def main(sheet: str, results: str = "results") -> None:
     with open(sheet, newline="") as f:
         rows = list(csv.DictReader(f, delimiter="\t"))
-    print("| sample | lights | held-out rel. L2, ours / Ward | specular part, ours / Ward | representatives | "
-          "NDF spread (largest region median) |")
-    print("|---|---|---|---|---|---|")
+    print("| sample | lights | held-out rel. L2, ours / Ward | specular part, ours / Ward | self-check: relit / "
+          "held-out lights | representatives | NDF spread (largest region median) |")
+    print("|---|---|---|---|---|---|---|")
     for row in rows:
         base = Path(results) / row["sample"]
-        v, c, p = (read(base / s / "metrics.json") for s in ("validate", "cluster", "params"))
+        v, c, p, sc = (read(base / s / "metrics.json") for s in ("validate", "cluster", "params", "selfcheck"))
         h = read(base / "hdr" / "metrics.json")
         if v is None:
             continue
         print(f"| {row['sample']} | {h['frames'] if h else '-'} | {cell(v.get('heldout_rel_l2'))} / "
               f"{cell(v.get('baseline_ward_rel_l2'))} | {cell(v.get('heldout_specular_rel_l2'))} / "
-              f"{cell(v.get('baseline_ward_specular_rel_l2'))} | {c['representatives'] if c else '-'} | "
+              f"{cell(v.get('baseline_ward_specular_rel_l2'))} | "
+              f"{cell(sc['relit']['rel_l2']) if sc else '-'} / {cell(sc['heldout']['rel_l2']) if sc else '-'} | "
+              f"{c['representatives'] if c else '-'} | "
               f"{cell(p.get('ndf_spread_max_median') if p else None)} |")
 
 
