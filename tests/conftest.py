@@ -75,3 +75,62 @@ def demo_run(repo, tmp_path_factory):
     done = snakemake(workdir, *NOISE_FREE)
     assert done.returncode == 0, done.stderr[-3000:]
     return workdir
+
+
+# the four-quadrant scene of the numerical extremes (issue 7, part 2)
+EXTREME_SCENE = """\
+name: extremes
+ndf: ggx
+size: [0.10, 0.10]
+regions:
+  - name: diffuse-only
+    where: {rect: {x: [-0.05, 0.0], y: [0.0, 0.05]}}
+    kd: [0.40, 0.30, 0.20]
+    ks: [0.0, 0.0, 0.0]
+    eta: 1.5
+    alpha: [0.3, 0.3]
+    frame: {angle_deg: 0}
+  - name: mirror-metal
+    where: {rect: {x: [0.0, 0.05], y: [0.0, 0.05]}}
+    kd: [0.0, 0.0, 0.0]
+    ks: [0.9, 0.7, 0.5]
+    eta: 3.5
+    alpha: [0.02, 0.02]
+    frame: {angle_deg: 0}
+  - name: rough-eta-near-1
+    where: {rect: {x: [-0.05, 0.0], y: [-0.05, 0.0]}}
+    kd: [0.10, 0.20, 0.30]
+    ks: [0.5, 0.5, 0.5]
+    eta: 1.05
+    alpha: [1.0, 1.0]
+    frame: {angle_deg: 0}
+  - name: glossy
+    where: {rect: {x: [0.0, 0.05], y: [-0.05, 0.0]}}
+    kd: [0.2, 0.2, 0.2]
+    ks: [0.6, 0.6, 0.6]
+    eta: 1.6
+    alpha: [0.15, 0.3]
+    frame: {angle_deg: 30}
+"""
+
+
+@pytest.fixture(scope="session")
+def extreme_run(tmp_path_factory):
+    """The four-quadrant extremes scene (ks = 0; kd = 0 with a near-mirror alpha 0.02 metal-like eta 3.5
+    lobe; alpha 1 with eta 1.05; an anisotropic glossy one), noise-free, captured by the virtual rig on
+    the sparse test rig (340 lights; camera 120 x 80), merged, rectified to 16 x 16 cells, then every
+    per-point stage on a 16 x 64 direction grid. One run for the session: shared by test_stages,
+    test_partial_ndf, test_resample and test_baseline."""
+    from facetsynth.stages import hdr
+    from facetsynth.virtual_rig import VirtualRig, capture
+    from test_stages import run_per_point_stages
+    root = tmp_path_factory.mktemp("extremes")
+    (root / "scene.yaml").write_text(EXTREME_SCENE)
+    rig = (REPO / "tests/data/rig-sparse.yaml").read_text().replace("width: 240", "width: 120")
+    (root / "rig.yaml").write_text(rig.replace("height_px: 160", "height_px: 80"))   # a quarter of the pixels
+    capture(root / "scene.yaml", VirtualRig.load(root / "rig.yaml"), root / "capture", seed=1, noise=False)
+    hdr.run(hdr.Inputs(capture=root / "capture"), hdr_outputs(root / "hdr"))
+    rectify_into(root / "hdr/manifest.json", root / "rectify", 16)
+    files = run_per_point_stages(root, root / "rectify/geometry.json", n_theta=16)
+    files["root"] = root
+    return files

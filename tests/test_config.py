@@ -20,7 +20,7 @@ ROOT = Path(__file__).resolve().parents[1]
 # stage module -> its config section
 STAGES = {"hdr": "hdr", "rectify": "rectify", "separate": "separate", "resample": "resample",
           "partial_ndf": "partial_ndf", "cluster": "cluster", "synthesize": "synthesize", "params": "params",
-          "refine": "refine", "selfcheck": "selfcheck"}
+          "refine": "refine", "selfcheck": "selfcheck", "baseline": "baseline"}
 # keys a rule takes from another section (or the top level), under that section's name for them
 ELSEWHERE = {"seed": (), "material_tolerance": ("params",), "grazing_deg": ("partial_ndf",),
              "heldout_every": ("selfcheck",), "shadowing": ("partial_ndf",), "tolerance": ("partial_ndf",),

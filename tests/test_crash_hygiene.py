@@ -121,13 +121,13 @@ def work(tmp_path_factory, repo):
                  separate.Outputs(kd=ref / "separate/kd.exr", specular=ref / "separate/specular.npy",
                                   valid=ref / "separate/valid.npy", metrics=ref / "separate/metrics.json"),
                  separate.Settings(heldout_every=0))
-    resample.run(geometry=inputs["geometry"], specular=ref / "separate/specular.npy", valid=ref / "separate/valid.npy",
-                 slice_out=inputs["slice_path"],
-                 colour_out=ref / "resample/colour.npy", grid_out=inputs["grid_path"],
-                 metrics_out=ref / "resample/metrics.json", settings=resample.Settings(n_theta_range=(8, 8)))
+    resample.run_whole(geometry=inputs["geometry"], specular=ref / "separate/specular.npy",
+                       valid=ref / "separate/valid.npy", slice_out=inputs["slice_path"],
+                       colour_out=ref / "resample/colour.npy", grid_out=inputs["grid_path"],
+                       metrics_out=ref / "resample/metrics.json", settings=resample.Settings(n_theta_range=(8, 8)))
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(partial_ndf, "TILE_POINTS", TILE_POINTS)
-        partial_ndf.run(**inputs, **pndf_paths(ref))
+        partial_ndf.run_whole(**inputs, **pndf_paths(ref))
     return {"root": root, "ref": ref, "pndf_inputs": inputs}
 
 
@@ -200,9 +200,9 @@ PNDF_KILLS = {
 def test_partial_ndf_rerun_after_sigkill_is_bitwise_an_uninterrupted_run(work, tmp_path, kill, monkeypatch):
     from facetsynth.stages import partial_ndf
     kwargs = {**work["pndf_inputs"], **pndf_paths(tmp_path)}
-    run_killed("facetsynth.stages.partial_ndf", "run", kwargs, tmp_path, **PNDF_KILLS[kill],
+    run_killed("facetsynth.stages.partial_ndf", "run_whole", kwargs, tmp_path, **PNDF_KILLS[kill],
                stage_globals={"TILE_POINTS": TILE_POINTS})
     monkeypatch.setattr(partial_ndf, "TILE_POINTS", TILE_POINTS)
-    partial_ndf.run(**kwargs)
+    partial_ndf.run_whole(**kwargs)
     assert temporaries(tmp_path) == []
     assert_same_files(tmp_path / "partial_ndf", work["ref"] / "partial_ndf")

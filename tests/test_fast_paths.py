@@ -13,7 +13,7 @@ from facetsynth.coverage import LightFootprint
 from facetsynth.grid import DirectionGrid
 from facetsynth.lightplane import LightTriangulation
 
-from test_extremes import one_material, rig_lights, write_rectified
+from test_stages import one_material, rig_lights, write_rectified
 from test_sampling_invariance import paper_lights
 
 
@@ -135,10 +135,10 @@ def test_tiles_on_threads_equal_one_thread(tmp_path):
     runs = []
     for threads in (1, 2, 2, 2):
         out = tmp_path / f"run{len(runs)}"
-        resample.run(geometry, tmp_path / "spec.npy", tmp_path / "valid.npy", out / "slice",
-                     out / "colour.npy", out / "grid.json", out / "r.json", threads=threads)
-        partial_ndf.run(geometry, out / "slice", out / "grid.json", out / "ndf", out / "p.json",
-                        partial_ndf.Settings(per_point_view=True), threads=threads)
+        resample.run_whole(geometry, tmp_path / "spec.npy", tmp_path / "valid.npy", out / "slice",
+                           out / "colour.npy", out / "grid.json", out / "r.json", threads=threads)
+        partial_ndf.run_whole(geometry, out / "slice", out / "grid.json", out / "ndf", out / "p.json",
+                              partial_ndf.Settings(per_point_view=True), threads=threads)
         runs.append([tables.load(out / "slice"), np.load(out / "colour.npy"), tables.load(out / "ndf", "ndf"),
                      tables.load(out / "ndf", "confidence")])
     assert runs[0][0].shape[0] == 1024 and runs[0][2].any()
@@ -184,10 +184,10 @@ def test_the_slice_kept_on_its_support_gives_the_partial_ndfs_of_the_whole_slice
         out = tmp_path / name
         if name == "whole":
             monkeypatch.setattr(resample, "read_around", lambda covered: np.ones_like(covered))
-        resample.run(geometry, tmp_path / "spec.npy", tmp_path / "valid.npy", out / "slice", out / "colour.npy",
-                     out / "grid.json", out / "r.json")
-        partial_ndf.run(geometry, out / "slice", out / "grid.json", out / "ndf", out / "p.json",
-                        partial_ndf.Settings(per_point_view=True))
+        resample.run_whole(geometry, tmp_path / "spec.npy", tmp_path / "valid.npy", out / "slice", out / "colour.npy",
+                           out / "grid.json", out / "r.json")
+        partial_ndf.run_whole(geometry, out / "slice", out / "grid.json", out / "ndf", out / "p.json",
+                              partial_ndf.Settings(per_point_view=True))
         fitted.append((tables.load(out / "ndf", "ndf"), tables.load(out / "ndf", "confidence"),
                        json.loads((out / "slice/table.json").read_text())["stored_fraction"]))
     (d, w, kept), (d_all, w_all, everything) = fitted

@@ -80,3 +80,27 @@ def test_rotating_a_tabulated_ndf_is_rotating_its_frame_and_rotates_back():
     assert np.abs(back - f).max() < 1e-3
     np.testing.assert_allclose(grid.rotate(f, k * grid.d_phi).ravel(),
                                grid.lookup(f, turn(d.reshape(-1, 3), k * grid.d_phi)), atol=1e-9)
+
+
+# ---------------------------------------------------------------------------- shared direction helpers
+# The paper's direction grid and view, and direction constructors: used by the tests of the modules that
+# work on directions (test_partial_ndf, test_separation, test_stages, test_svbrdf, test_ward_batched, ...).
+GRID = DirectionGrid(32, 128)
+O = np.array([0.0, -0.8, 0.6])                  # the paper's view, 53 deg from vertical
+
+
+def unit(v):
+    v = np.asarray(v, float)
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def sph(theta_deg, phi_deg):
+    t, p = np.radians(theta_deg), np.radians(phi_deg)
+    t, p = np.broadcast_arrays(t, p)
+    return np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], -1)
+
+
+def upper(rng, n):
+    d = rng.normal(size=(n, 3))
+    d[:, 2] = np.abs(d[:, 2])
+    return unit(d)

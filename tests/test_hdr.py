@@ -108,3 +108,30 @@ def test_merge_is_exact_at_sensor_count_scale_and_long_exposures(saturation, tim
     merged, saturated = merge_exposures(values, times, sensor)
     assert np.isfinite(merged).all() and not saturated.any()
     np.testing.assert_allclose(merged, radiance, rtol=1e-6)
+
+
+# ---------------------------------------------------------------------------- numerical extremes (issue 7, part 2)
+def test_hdr_merge_treats_nan_and_inf_readings_as_unusable():
+    """A NaN or +Inf exposure reading (a dead or hot sensor value) is unusable, like a clipped one: the
+    pixel is merged from its other exposures exactly as if that reading were absent. A pixel with no
+    finite reading at all gets the clipped pixel's finite lower bound and the saturated flag, so later
+    stages exclude it. The merge never returns NaN or Inf."""
+    from facetsynth.hdr import SensorModel, merge_exposures
+    times = np.array([0.01, 0.1, 1.0])
+    sensor = SensorModel(saturation=1.0, read_sigma=1e-3, shot_gain=1e-4)
+    values = np.array([0.004, 0.04, 0.4])[:, None, None, None] * np.ones((3, 1, 4, 3))
+    reference, _ = merge_exposures(values, times, sensor)
+    np.testing.assert_allclose(reference, 0.4, rtol=1e-6)
+    bad = values.copy()
+    bad[1, 0, 0, 0] = np.nan                  # pixel 0: NaN in the middle exposure
+    bad[2, 0, 1, 1] = np.inf                  # pixel 1: Inf in the longest
+    bad[:, 0, 2, 2] = np.nan                  # pixel 2: no finite reading in any exposure
+    merged, saturated = merge_exposures(bad, times, sensor)
+    assert np.isfinite(merged).all()
+    without_middle, _ = merge_exposures(values[[0, 2], :, :1], times[[0, 2]], sensor)
+    without_longest, _ = merge_exposures(values[:2, :, 1:2], times[:2], sensor)
+    np.testing.assert_allclose(merged[0, 0, 0], without_middle[0, 0, 0], rtol=1e-6)
+    np.testing.assert_allclose(merged[0, 1, 1], without_longest[0, 0, 1], rtol=1e-6)
+    np.testing.assert_allclose(merged[0, 3], reference[0, 3], rtol=0)   # an untouched pixel is unchanged
+    assert merged[0, 2, 2] == pytest.approx(sensor.clip_level / times.min())
+    assert saturated[0, 2] and not saturated[0, 0] and not saturated[0, 1] and not saturated[0, 3]

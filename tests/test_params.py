@@ -480,3 +480,53 @@ def test_a_material_whose_eta_interval_is_the_whole_range_keeps_the_default():
     assert records[1]["eta_interval_open"] == [True, True] and "do not constrain" in records[1]["reason"]
     assert abs(records[1]["fitted_eta"] - 1.2) < 0.1                  # the fit is recorded, not used
     assert np.all(eta[owner == 3] == 1.5) and not fitted[owner == 3].any() and fitted[owner < 3].all()
+
+
+# ---------------------------------------------------------------------------- numerical extremes (issue 7, part 2)
+C_GRAZING = np.linspace(0.02, 0.5, 60)         # |i.h| of grazing samples
+
+
+def test_eta_fit_at_the_extremes_of_eta():
+    """Eq. 19 (as printed) on exact F: eta = 1.08 (near 1: F is tiny except at grazing) and 3.8 (metal-like)
+    are recovered to 1e-3; eta = 6 lies beyond the bound 4.0, the fit runs to the bound and the default is
+    kept and said; eta = 1 (no interface) gives F = 0, the fit runs to the lower bound, default kept."""
+    for eta in (1.08, 3.8):
+        fit = params.fit_eta(microfacet.fresnel(C_GRAZING, eta), C_GRAZING)
+        assert fit.constrained and fit.eta == pytest.approx(eta, abs=1e-3) and np.isfinite(fit.std)
+    beyond = params.fit_eta(microfacet.fresnel(C_GRAZING, 6.0), C_GRAZING, default=1.55)
+    assert not beyond.constrained and beyond.eta == 1.55 and "bound" in beyond.reason
+    none = params.fit_eta(microfacet.fresnel(C_GRAZING, 1.0), C_GRAZING, default=1.55)
+    assert not none.constrained and none.eta == 1.55 and "bound" in none.reason
+    # the ratio model of the pipeline (F at c over F at c_ref), near 1 and large
+    for eta in (1.08, 3.8):
+        c_ref = np.full(C_GRAZING.size, 0.6)
+        f = microfacet.fresnel(C_GRAZING, eta) / microfacet.fresnel(0.6, eta)
+        fit = params.fit_eta(f, C_GRAZING, c_ref)
+        assert fit.constrained and fit.eta == pytest.approx(eta, abs=1e-3)
+
+
+def test_eta_fit_on_samples_all_at_grazing_keeps_the_default():
+    """Fresnel at grazing: at c = |i.h| -> 0, F -> 1 for every eta (F = 1 - O(c)), so samples all at
+    c <= 1e-6, measured to 1e-4 (far better than the pipeline's F_m), carry no usable information on eta:
+    the standard error is huge, the fit is unconstrained and keeps the default; everything finite."""
+    c = np.linspace(0.0, 1e-6, 40)
+    noise = 1 + 1e-4 * np.random.default_rng(2).standard_normal(40)
+    fit = params.fit_eta(microfacet.fresnel(c, 2.0) * noise, c, default=1.45)
+    assert not fit.constrained and fit.eta == 1.45 and fit.samples == 40
+    assert np.isfinite(fit.rms) and fit.rms < 2e-4 and fit.std > 1.0
+
+
+def test_eta_fit_on_noise_is_unconstrained():
+    """LM on data that no eta explains (F_m log-normal, independent of c; and F_m with NaN / Inf entries
+    mixed in): the fit ends without a trusted minimum, reports it unconstrained and keeps the default;
+    the NaN / Inf samples are dropped (counted out of ``samples``), nothing non-finite leaves the fit."""
+    rng = np.random.default_rng(3)
+    f_m = np.exp(rng.normal(0.0, 1.5, C_GRAZING.size))
+    fit = params.fit_eta(f_m, C_GRAZING, default=1.45)
+    assert not fit.constrained and fit.eta == 1.45 and np.isfinite(fit.rms)
+    good = microfacet.fresnel(C_GRAZING, 2.2)
+    bad = good.copy()
+    bad[[3, 9]] = np.nan
+    bad[17] = np.inf
+    fit = params.fit_eta(bad, C_GRAZING)
+    assert fit.samples == C_GRAZING.size - 3 and fit.constrained and fit.eta == pytest.approx(2.2, abs=1e-3)

@@ -13,6 +13,9 @@ import pytest
 from facetsynth import cluster, microfacet
 from facetsynth import synthesis as syn
 from facetsynth.grid import DirectionGrid
+from facetsynth.plane import PlaneGrid
+
+from test_stages import metrics_of, one_material, rig_lights, write_rectified
 
 GRID = DirectionGrid(16, 64)
 ALPHA = (0.15, 0.4)
@@ -314,3 +317,88 @@ def test_ann_search_completes_like_the_exact_search():
     assert ann.coverage >= 0.83 and exact.coverage >= 0.83     # the paper's overlap rule: measured 0.870, 0.855
     assert e_ann <= 0.15 and e_exact <= 0.15                  # measured 0.066, 0.133 (holes push-pulled)
     assert all(m["relative_error"] < 0.01 for m in ann.merges)   # only true (rotated) copies merged
+
+
+# ---------------------------------------------------------------------------- numerical extremes (issue 7, part 2)
+SGRID = GRID                                    # DirectionGrid(16, 64), as the extremes tests name it
+
+
+def ggx_partial(frames, scale=1.0, alpha=(0.15, 0.4), grid=SGRID, max_theta=56.0):
+    """Partial tuples <D, W> of GGX NDFs at frame azimuths, on a single-view-like domain (a cap to max_theta
+    deg narrowing in phi; the same shape as tests/test_synthesis.py's)."""
+    t = np.degrees(grid.theta)[:, None]
+    p = np.degrees(grid.phi)[None, :]
+    half = np.clip(150.0 - (t - 15.0) * 3.5, 0.0, 180.0)
+    gap = np.abs((p - 90.0 + 180.0) % 360.0 - 180.0)
+    mask = ((t <= 15.0) | (gap <= half)) & (t <= max_theta)
+    frames = np.atleast_1d(np.asarray(frames, float))
+    d = microfacet.ndf(grid.directions.reshape(1, -1, 3), alpha[0], alpha[1], frames[:, None]).reshape(
+        (len(frames),) + grid.shape) * np.reshape(scale, (-1, 1, 1))
+    return np.where(mask, d, 0.0), np.broadcast_to(mask, d.shape).astype(float)
+
+
+def test_eq15_tiny_overlap_and_extreme_scales():
+    """Eq. 15 where s1, s2 -> 0 or the overlap shrinks to one cell. One shared cell: each D divided by its
+    own scale over the overlap is 1 / dw there, so the distance is 0 (to rounding, 1e-12) and the overlap is that cell's
+    solid angle (direct, matrix and FFT forms agree). NDFs scaled by 1e-6 and 1e6 (a dark and a very bright
+    point): the distance is scale-free, direct form to 1e-9, FFT (complex64) within 1e-3 of the direct one.
+    Below the TINY scale (1e-32) an NDF counts as empty: distance inf, weights 0, never NaN."""
+    d, w = ggx_partial([0.3, 1.2])
+    one = np.zeros_like(w)
+    one[0, 3, 10] = one[1, 3, 10] = 1.0                      # each domain: one cell, the same one
+    one[1, 4, 20] = 0.5                                      # ... and one of its own
+    m = syn.distance(d[0], one[0], d[1], one[1], SGRID)
+    assert m.distance < 1e-12 / SGRID.solid_angles[3, 10] ** 2 and m.relative < 1e-12   # 0 up to rounding
+    assert m.overlap == pytest.approx(SGRID.solid_angles[3, 10], rel=1e-12)
+    scale = 1.0 / SGRID.solid_angles[3, 10] ** 2
+    assert abs(syn.pairwise_distance(d[:1], one[:1], d[1:], one[1:], SGRID)[0, 0]) < 1e-9 * scale
+    match, frac = syn.ExemplarSpectra(d[1:], one[1:], SGRID).scores(d[0], one[0])
+    assert abs(match.distance[0, 0]) < 1e-5 * scale and np.isfinite(match.distance[0, 0])
+    assert not np.isnan(match.distance).any() and not np.isnan(frac).any()
+    base = syn.distance(d[0], w[0], d[1], w[1], SGRID)
+    spectra_base, _ = syn.ExemplarSpectra(d[1:], w[1:], SGRID).scores(d[0], w[0])
+    for s1, s2 in ((1e-6, 1.0), (1.0, 1e6), (1e-6, 1e6)):
+        m = syn.distance(s1 * d[0], w[0], s2 * d[1], w[1], SGRID)
+        assert m.distance == pytest.approx(float(base.distance), rel=1e-9)
+        fft, _ = syn.ExemplarSpectra(s2 * d[1:], w[1:], SGRID).scores(s1 * d[0], w[0])
+        assert np.isfinite(fft.distance).all()
+        np.testing.assert_allclose(fft.distance, spectra_base.distance, rtol=1e-3, atol=1e-3 * float(base.distance))
+    empty = syn.distance(1e-32 * d[0], w[0], d[1], w[1], SGRID)
+    assert np.isinf(empty.distance) and empty.s1 == 0 and empty.weight == 0 and not np.isnan(empty.relative)
+
+
+def test_identical_ndfs_everywhere_through_the_stages(tmp_path):
+    """Every point has the identical partial NDF (an isotropic GGX, alpha 0.3) and W: the cluster stage
+    lowers k to 1 distinct NDF (one representative, weight 1 everywhere, lambda undefined -> null); the
+    synthesize stage completes it beyond its own domain (from rotated copies of itself, which are exact
+    matches, or by azimuthal symmetry), so on every covered cell the completed NDF equals the true
+    isotropic GGX (to the half-float rounding of the stored partial NDFs, 2^-11), and nothing is NaN."""
+    from facetsynth.fileio import write_json
+    from facetsynth.stages import cluster as st_cluster, synthesize as st_synth
+    from facetsynth.tables import support_writer
+    geometry = write_rectified(tmp_path / "cap", one_material((0.2,) * 3, (0.5,) * 3), PlaneGrid(0.1, 0.1, 5, 5),
+                               rig_lights(2, 2))
+    d, w = ggx_partial([0.0], scale=0.7, alpha=(0.3, 0.3))
+    with support_writer(tmp_path / "partial", (25,) + SGRID.shape, ("ndf", "confidence")) as write:
+        write(np.repeat(w, 25, 0) > 0, ndf=np.repeat(d, 25, 0), confidence=np.repeat(w, 25, 0))
+    write_json(tmp_path / "grid.json", SGRID.to_dict())
+    out = tmp_path / "out"
+    st_cluster.run(st_cluster.Inputs(geometry=geometry, ndf=tmp_path / "partial", grid=tmp_path / "grid.json"),
+         st_cluster.Outputs(labels=out / "labels.npy",
+         representatives=out / "reps.npy", neighbours=out / "nbr.npy", weights=out / "wts.npy",
+         rep_ndf=out / "rep_ndf.npy", rep_confidence=out / "rep_conf.npy", rotation=out / "rotation.npy",
+         metrics=out / "cluster.json"))
+    m = metrics_of(out / "cluster.json")
+    assert m["distinct_ndfs"] == 1 and m["representatives"] == 1 and m["lambda"] is None
+    wts = np.load(out / "wts.npy")
+    assert np.all(np.load(out / "labels.npy") == 0) and np.all(wts[:, 0] == 1) and np.all(wts[:, 1:] == 0)
+    st_synth.run(st_synth.Inputs(geometry=geometry, ndf=tmp_path / "partial",
+         grid=tmp_path / "grid.json", representatives=out / "reps.npy", neighbours=out / "nbr.npy",
+         weights=out / "wts.npy"), st_synth.Outputs(ndf=out / "ndf.npy", confidence=out / "w.npy",
+         fresnel_cosine=out / "cos.npy", grid=out / "grid.json", metrics=out / "synth.json"))
+    table, conf = np.load(out / "ndf.npy"), np.load(out / "w.npy")
+    assert table.shape == (1,) + SGRID.shape and np.isfinite(table).all() and (table >= 0).all()
+    covered = conf[0] > 0
+    truth = 0.7 * microfacet.ndf(SGRID.directions, 0.3, 0.3, 0.0)
+    assert covered.sum() > (w[0] > 0).sum()                  # more than its own domain
+    np.testing.assert_allclose(table[0][covered], truth[covered], rtol=2.0 ** -11)

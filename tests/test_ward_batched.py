@@ -9,6 +9,8 @@ from scipy.optimize import least_squares
 
 from facetsynth import ward
 
+from test_grid import O, upper
+
 # the paper's 480-light rig (rig/descriptions/paper-480.yaml): every second LED of the 40 (6 mm pitch) at 4 cm,
 # 24 carriage positions over y = 0.2 .. 0 m; the view 60 deg from vertical at azimuth -90 deg (distant camera)
 LEDS = (np.arange(0, 40, 2) - 19.5) * 0.006
@@ -213,3 +215,34 @@ def test_timing_against_the_per_point_scipy_fit():
           f"points/s ({m} points): {new / old:.0f}x; cost ratio batched/scipy on those {m}: "
           f"max {np.max(fit.cost[:m] / [r.cost for r in ref]):.9f}")
     assert fit.ok.mean() > 0.99
+
+
+# ---------------------------------------------------------------------------- numerical extremes (issue 7, part 2)
+def test_ward_lm_that_does_not_converge_and_bad_samples():
+    """The per-point Ward baseline's LM. Cut short (max_iterations = 3) it reports ok = False with finite
+    parameters inside the alpha range and phi in [0, pi); given its full budget it recovers the lobe
+    (ks, alphas to 1e-3). A NaN or Inf sample is dropped, not propagated: the fit equals the fit without it."""
+    from facetsynth import ward
+    rng = np.random.default_rng(5)
+    wi, wo = upper(rng, 300), np.broadcast_to(O, (300, 3))
+    truth = (0.5, 0.1, 0.3, 0.4)
+    rho_s = truth[0] * ward.ward_specular(wi, wo, *truth[1:])
+
+    def fit(rho, i, o, **kw):
+        return type(f := ward.fit_points(rho[None], i[None], o[None], **kw))(*(v[0] for v in f))
+
+    full = fit(rho_s, wi, wo)
+    assert full.ok
+    np.testing.assert_allclose([full.ks, full.alpha_x, full.alpha_y], truth[:3], rtol=1e-3)
+    short = fit(rho_s, wi, wo, max_iterations=3)
+    lo, hi = ward.ALPHA_RANGE
+    assert not short.ok and np.isfinite([short.ks, short.alpha_x, short.alpha_y, short.phi, short.cost]).all()
+    assert lo <= short.alpha_x <= hi and lo <= short.alpha_y <= hi and 0 <= short.phi < np.pi
+    bad = rho_s.copy()
+    bad[10], bad[20] = np.nan, np.inf
+    got = fit(bad, wi, wo)
+    keep = np.ones(300, bool)
+    keep[[10, 20]] = False
+    ref = fit(rho_s[keep], wi[keep], wo[keep])
+    np.testing.assert_allclose([got.ks, got.alpha_x, got.alpha_y, got.phi], [ref.ks, ref.alpha_x, ref.alpha_y, ref.phi],
+                               rtol=1e-9)

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from conftest import RGL_FILES
+from test_grid import sph
 from facetsynth.microfacet import rho
 import importlib
 
@@ -226,3 +227,35 @@ def test_kurt_recovers_its_own_lobes():
     m, secs = kurt.fit_kurt(b)
     sc = scores.score_brdf(b, kurt.kurt_evaluate_utia(m))
     assert sc["psnr_db"] > 35 and sc["delta_e"] < 1.0
+
+
+# ---------------------------------------------------------------------------- numerical extremes (issue 7, part 2)
+@pytest.mark.parametrize("jacobian", [False, True])
+def test_stencil_model_is_bounded_and_continuous_at_grazing(jacobian):
+    """Paper 000 eq. 3 divides by cos th_i cos th_v; the model floors each cosine at cos 85 deg, so at
+    theta -> 90 deg (cosines 1e-12 .. 1e-3) the value is finite, non-negative, below the analytic bound
+    max_j m_j (kd_j + ks_j (a_j + b_j / cos^2 85)^alpha_j) max(1, k (a_s + (b_s + f_s) / cos^2 85) / kh_min),
+    and continuous (identical for cosines 1e-12 and 1e-9 up to the change of H).  With ``jacobian`` the
+    eq. 10 lobe is also divided by k.h, which at the grazing mirror pair goes to 0: floored at cos 85 deg."""
+    from dataclasses import replace
+    from facetsynth.stencil.model import COS_FLOOR, Mode, StencilModel, evaluate
+    modes = (Mode(0.3, 0.6, 0.4, 0.05, 0.1, 0.8, 2.0, (0.9, 0.6, 0.3)),
+             Mode(1.6, 0.7, 0.2, 0.10, 0.05, 0.5, 3.0, (0.2, 0.5, 0.9)))
+    model = StencilModel(modes=modes, beta=(0.3,), r=0.05, m_bg=(0.2, 0.5, 0.9), k=2.0, alpha_s=20.0,
+                         a_s=0.4, b_s=0.05)
+    if jacobian:
+        model = replace(model, f_s=0.02, jacobian=True)
+    floor = COS_FLOOR**2
+    bound = max(max(md.m) * (md.kd + md.ks * (md.a + md.b / floor) ** md.alpha) for md in modes)
+    lobe_max = model.k * (model.a_s + (model.b_s + model.f_s) / floor) / (COS_FLOOR if jacobian else 1.0)
+    bound = max(bound, model.r * max(model.m_bg)) * max(1.0, lobe_max)
+    phis = np.arange(0, 360, 7.5)
+    values = {}
+    for c in (1e-12, 1e-9, 1e-3):
+        s = np.sqrt(1 - c * c)
+        wi = np.stack([s * np.cos(np.radians(phis)), s * np.sin(np.radians(phis)), np.full(phis.size, c)], -1)
+        wo = np.stack([-wi[:, 0], -wi[:, 1], wi[:, 2]], -1)            # the mirror direction, also grazing
+        values[c] = np.concatenate([evaluate(model, wi, wo), evaluate(model, wi, sph(np.full(phis.size, 40.0), phis))])
+        assert np.isfinite(values[c]).all() and (values[c] >= 0).all() and values[c].max() <= bound * (1 + 1e-12)
+    np.testing.assert_allclose(values[1e-12], values[1e-9], rtol=1e-6, atol=1e-12)
+    assert values[1e-3].max() > 0

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -15,14 +16,58 @@ from tqdm import tqdm
 
 from ..fileio import atomic_path, read_exr, write_json
 from ..ward import WardSVBRDF, fit_points
-from .common import TILE_POINTS, RectifiedCapture, part_points, part_records
+from .common import TILE_POINTS, RectifiedCapture, RuleFiles, StageSettings, part_points, part_records
 
 log = logging.getLogger(__name__)
 
 
-def run(geometry: str | Path, kd_path: str | Path, specular: str | Path, valid: str | Path, colour: str | Path,
-        model_out: str | Path, metrics_out: str | Path, max_nfev: int = 200) -> None:
-    """Fit every visible point independently (Goldman et al. 2005 style) and write the Ward model folder."""
+@dataclass(frozen=True)
+class Inputs(RuleFiles):
+    """Rule ``baseline_ward``'s inputs: separate's geometry, kd, specular samples and their validity, resample's
+    specular colour; in the join of scatter parts (``scatter.tiles`` > 1) also the parts' records (None: the
+    whole capture, or one part)."""
+    geometry: Path
+    kd: Path
+    specular: Path
+    valid: Path
+    colour: Path
+    records: list[Path] | None = None
+
+
+@dataclass(frozen=True)
+class Outputs(RuleFiles):
+    """Rule ``baseline_ward``'s outputs: the Ward model folder and the metrics; rule ``baseline_ward_part``'s: its
+    ``record`` (the others None)."""
+    model: Path | None = None
+    metrics: Path | None = None
+    record: Path | None = None
+
+
+@dataclass(frozen=True)
+class Settings(StageSettings):
+    """The stage's knobs: config ``baseline`` (workflow/schemas/config.schema.yaml)."""
+    max_nfev: int = 200    # LM iterations (trial steps) per start and point
+
+
+def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threads: int = 1, *,
+        part: tuple[int, int] | None = None) -> None:
+    """The rule's job: scatter part ``part`` (part, parts) of rule ``baseline_ward_part`` (:func:`run_part`), the
+    parts' join (``inputs.records``: :func:`gather`) or the whole capture (:func:`run_whole`); one thread."""
+    if part is not None:
+        run_part(inputs.geometry, inputs.specular, inputs.valid, *part, record_out=outputs.record,
+                 max_nfev=settings.max_nfev)
+    elif inputs.records is not None:
+        gather(inputs.geometry, inputs.kd, inputs.colour, inputs.specular, records=inputs.records,
+               model_out=outputs.model, metrics_out=outputs.metrics)
+    else:
+        run_whole(inputs.geometry, inputs.kd, inputs.specular, inputs.valid, inputs.colour, model_out=outputs.model,
+                  metrics_out=outputs.metrics, max_nfev=settings.max_nfev)
+
+
+def run_whole(geometry: str | Path, kd_path: str | Path, specular: str | Path, valid: str | Path,
+              colour: str | Path, model_out: str | Path, metrics_out: str | Path, max_nfev: int = 200) -> None:
+    """The whole capture in one job (``scatter.tiles`` 1): fit every visible point independently (Goldman et al.
+    2005 style) and write the Ward model folder."""
     capture = RectifiedCapture.load(geometry)
     fitted = _fit_points(capture, specular, valid, slice(0, capture.n_points), max_nfev)
     _write(capture, kd_path, colour, fitted, specular, model_out, metrics_out)

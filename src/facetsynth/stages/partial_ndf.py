@@ -14,11 +14,32 @@ from ..fileio import atomic_path, read_json, write_json
 from ..frames import imap
 from ..grid import DirectionGrid
 from ..tables import SupportTable, join_tables, support_writer
-from .common import TILE_POINTS, RectifiedCapture, StageSettings, analytic_points, part_points, part_records, tiles
+from .common import (TILE_POINTS, RectifiedCapture, RuleFiles, StageSettings, analytic_points, part_points,
+                     part_records, tiles)
 
 log = logging.getLogger(__name__)
 
 METRIC_POINTS = 1024  # points on which the accuracy against the truth is measured
+
+
+@dataclass(frozen=True)
+class Inputs(RuleFiles):
+    """Rule ``partial_ndf``'s inputs: separate's geometry, resample's slices and grid; in the join of scatter parts
+    (``scatter.tiles`` > 1) also the parts' NDF tables and records (None: the whole capture, or one part)."""
+    geometry: Path
+    slice: Path
+    grid: Path
+    ndf: list[Path] | None = None
+    records: list[Path] | None = None
+
+
+@dataclass(frozen=True)
+class Outputs(RuleFiles):
+    """Rule ``partial_ndf``'s outputs: the NDF table (D and W) and the metrics; rule ``partial_ndf_part``'s: its
+    points' NDF table and its ``record`` (no metrics)."""
+    ndf: Path
+    metrics: Path | None = None
+    record: Path | None = None
 
 
 @dataclass(frozen=True)
@@ -48,11 +69,26 @@ def light_coverage(capture: RectifiedCapture, grid: DirectionGrid):
     return lambda points: footprint.on_grid(capture.points[points], grid, capture.frames(points))
 
 
-def run(geometry: str | Path, slice_path: str | Path, grid_path: str | Path, ndf_out: str | Path,
-        metrics_out: str | Path, settings: Settings = Settings(), threads: int = 1) -> None:
-    """Fit every point's partial NDF, in tiles of points over memory-mapped tensors, on ``threads`` threads.
-    ``ndf_out``: a :mod:`facetsynth.tables` support table of D (channel ``ndf``) and W (``confidence``) on
-    each point's W > 0.
+def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threads: int = 1, *,
+        part: tuple[int, int] | None = None) -> None:
+    """The rule's job: scatter part ``part`` (part, parts) of rule ``partial_ndf_part`` (:func:`run_part`), the
+    parts' join (``inputs.records``: :func:`gather`) or the whole capture (:func:`run_whole`)."""
+    if part is not None:
+        run_part(inputs.geometry, inputs.slice, inputs.grid, *part, ndf_out=outputs.ndf, record_out=outputs.record,
+                 settings=settings, threads=threads)
+    elif inputs.records is not None:
+        gather(inputs.geometry, inputs.grid, ndf_parts=inputs.ndf, records=inputs.records, ndf_out=outputs.ndf,
+               metrics_out=outputs.metrics, settings=settings)
+    else:
+        run_whole(inputs.geometry, inputs.slice, inputs.grid, ndf_out=outputs.ndf, metrics_out=outputs.metrics,
+                  settings=settings, threads=threads)
+
+
+def run_whole(geometry: str | Path, slice_path: str | Path, grid_path: str | Path, ndf_out: str | Path,
+              metrics_out: str | Path, settings: Settings = Settings(), threads: int = 1) -> None:
+    """The whole capture in one job (``scatter.tiles`` 1): fit every point's partial NDF, in tiles of points over
+    memory-mapped tensors, on ``threads`` threads. ``ndf_out``: a :mod:`facetsynth.tables` support table of D
+    (channel ``ndf``) and W (``confidence``) on each point's W > 0.
 
     For virtual captures, accuracy is measured against
     :func:`facetsynth.partial_ndf.recoverable_ndf` over cells with W >= 0.5,

@@ -27,7 +27,7 @@ from ..lightplane import LightTriangulation
 from ..pushpull import push_pull
 from ..sharpness import grid_resolution, lobe_widths
 from ..tables import join_tables, support_writer
-from .common import TILE_POINTS, RectifiedCapture, StageSettings, part_points, part_records, tiles
+from .common import TILE_POINTS, RectifiedCapture, RuleFiles, StageSettings, part_points, part_records, tiles
 
 log = logging.getLogger(__name__)
 
@@ -54,6 +54,28 @@ def measured_sharpness(capture: RectifiedCapture, spec, ok, grazing_deg: float) 
 
 
 @dataclass(frozen=True)
+class Inputs(RuleFiles):
+    """Rule ``resample``'s inputs: separate's geometry, specular samples and their validity; in the join of scatter
+    parts (``scatter.tiles`` > 1) also the parts' slices and records (None: the whole capture, or one part)."""
+    geometry: Path
+    specular: Path
+    valid: Path
+    slice: list[Path] | None = None
+    records: list[Path] | None = None
+
+
+@dataclass(frozen=True)
+class Outputs(RuleFiles):
+    """Rule ``resample``'s outputs: the slices' folder, the specular colour, the grid and the metrics; rule
+    ``resample_part``'s: its points' slices and its ``record`` (the others None)."""
+    slice: Path
+    colour: Path | None = None
+    grid: Path | None = None
+    metrics: Path | None = None
+    record: Path | None = None
+
+
+@dataclass(frozen=True)
 class Settings(StageSettings):
     """The stage's knobs: config ``resample`` and ``partial_ndf.grazing_deg`` (workflow/schemas/config.schema.yaml)."""
     cells_per_lobe: float = 1.3               # elevation rings per narrow lobe half-width
@@ -76,13 +98,29 @@ class Settings(StageSettings):
                                                "ring_width_deg": 90.0 / n_theta}
 
 
-def run(geometry: str | Path, specular: str | Path, valid: str | Path, slice_out: str | Path,
-        colour_out: str | Path, grid_out: str | Path, metrics_out: str | Path,
-        settings: Settings = Settings(), threads: int = 1) -> None:
-    """Writes, per point: the specular slice rho~_s(i) on the grid (P, T, F) (channel mean; a
-    :mod:`facetsynth.tables` support table, kept within a cell of the directions the lights covered,
-    where eq. 11 reads it) and the specular colour (P, 3) (channel ratios, mean 1), the grid
-    definition (JSON) and the metrics (the measured lobe widths and the grid they chose).
+def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threads: int = 1, *,
+        part: tuple[int, int] | None = None) -> None:
+    """The rule's job: scatter part ``part`` (part, parts) of rule ``resample_part`` (:func:`run_part`), the parts'
+    join (``inputs.records``: :func:`gather`) or the whole capture (:func:`run_whole`)."""
+    if part is not None:
+        run_part(inputs.geometry, inputs.specular, inputs.valid, *part, slice_out=outputs.slice,
+                 record_out=outputs.record, settings=settings, threads=threads)
+    elif inputs.records is not None:
+        gather(inputs.geometry, inputs.specular, inputs.valid, slice_parts=inputs.slice, records=inputs.records,
+               slice_out=outputs.slice, colour_out=outputs.colour, grid_out=outputs.grid,
+               metrics_out=outputs.metrics, settings=settings)
+    else:
+        run_whole(inputs.geometry, inputs.specular, inputs.valid, slice_out=outputs.slice, colour_out=outputs.colour,
+                  grid_out=outputs.grid, metrics_out=outputs.metrics, settings=settings, threads=threads)
+
+
+def run_whole(geometry: str | Path, specular: str | Path, valid: str | Path, slice_out: str | Path,
+              colour_out: str | Path, grid_out: str | Path, metrics_out: str | Path,
+              settings: Settings = Settings(), threads: int = 1) -> None:
+    """The whole capture in one job (``scatter.tiles`` 1). Writes, per point: the specular slice rho~_s(i) on
+    the grid (P, T, F) (channel mean; a :mod:`facetsynth.tables` support table, kept within a cell of the
+    directions the lights covered, where eq. 11 reads it) and the specular colour (P, 3) (channel ratios,
+    mean 1), the grid definition (JSON) and the metrics (the measured lobe widths and the grid they chose).
     The coverage itself (in W, eq. 12) is geometry: :class:`facetsynth.coverage.LightFootprint`
     gives it where it is used."""
     capture = RectifiedCapture.load(geometry)

@@ -10,14 +10,19 @@ from typing import Any, Callable
 from threadpoolctl import threadpool_limits
 
 from ..errors import InputError
+from .common import scatter_item
 
 
 def run_script(snakemake: Any, stage: ModuleType) -> None:
     """A stage module's ``run(inputs, outputs, settings, threads)`` from a Snakemake ``script:``: its
     ``Inputs``, ``Outputs`` and ``Settings`` filled by name from the rule (:class:`facetsynth.stages.common.RuleFiles`,
-    :class:`~facetsynth.stages.common.StageSettings`), run by :func:`run_stage`."""
+    :class:`~facetsynth.stages.common.StageSettings`), run by :func:`run_stage`; a scatter part's rule
+    (the ``{scatteritem}`` wildcard) also passes its ``part``: (part, parts) of
+    :func:`~facetsynth.stages.common.scatter_item`."""
+    scatter = ({"part": scatter_item(snakemake.wildcards.scatteritem)}
+               if "scatteritem" in snakemake.wildcards.keys() else {})
     run_stage(snakemake, stage.run, stage.Inputs.from_rule(snakemake.input), stage.Outputs.from_rule(snakemake.output),
-              stage.Settings.from_params(snakemake.params), threads=snakemake.threads)
+              stage.Settings.from_params(snakemake.params), threads=snakemake.threads, **scatter)
 
 
 def run_stage(snakemake: Any, stage: Callable[..., Any], *args: Any, **kwargs: Any) -> None:
