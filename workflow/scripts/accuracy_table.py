@@ -6,7 +6,8 @@
 Prints one markdown row per sample that has results: held-out relative L2 of radiance (all, and the
 specular part where the truth is eq. 6), ours against the per-point Ward baseline on the same views; the
 self-check's (no truth: the fitting view relit, and the held-out lights, selfcheck/metrics.json); the
-representatives, and the largest within-region median NDF spread.
+representatives, and the largest within-region median NDF spread of the delivered model (refine's), params'
+in brackets.
 """
 
 import csv
@@ -27,11 +28,12 @@ def main(sheet: str, results: str = "results") -> None:
     with open(sheet, newline="") as f:
         rows = list(csv.DictReader(f, delimiter="\t"))
     print("| sample | lights | held-out rel. L2, ours / Ward | specular part, ours / Ward | self-check: relit / "
-          "held-out lights | representatives | NDF spread (largest region median) |")
+          "held-out lights | representatives | NDF spread (largest region median), refine (params) |")
     print("|---|---|---|---|---|---|---|")
     for row in rows:
         base = Path(results) / row["sample"]
-        v, c, p, sc = (read(base / s / "metrics.json") for s in ("validate", "cluster", "params", "selfcheck"))
+        v, c, p, sc, r = (read(base / s / "metrics.json")
+                          for s in ("validate", "cluster", "params", "selfcheck", "refine"))
         h = read(base / "hdr" / "metrics.json")
         if v is None:
             continue
@@ -40,7 +42,8 @@ def main(sheet: str, results: str = "results") -> None:
               f"{cell(v.get('baseline_ward_specular_rel_l2'))} | "
               f"{cell(sc['relit']['rel_l2']) if sc else '-'} / {cell(sc['heldout']['rel_l2']) if sc else '-'} | "
               f"{c['representatives'] if c else '-'} | "
-              f"{cell(p.get('ndf_spread_max_median') if p else None)} |")
+              f"{cell(r.get('ndf_spread_max_median') if r else None)} "
+              f"({cell(p.get('ndf_spread_max_median') if p else None)}) |")
 
 
 if __name__ == "__main__":
