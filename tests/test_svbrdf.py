@@ -10,7 +10,7 @@ from facetsynth.errors import InputError
 from facetsynth.grid import DirectionGrid
 from facetsynth.plane import PlaneGrid
 from facetsynth.scene import MaterialMaps
-from facetsynth.svbrdf import SVBRDF, tabulate_truth
+from facetsynth.svbrdf import SVBRDF, mixture_at, tabulate_truth
 
 from test_grid import GRID, O, sph
 
@@ -339,3 +339,31 @@ def test_very_rough_tabulated_model_matches_eq6():
         inner = np.minimum(wi[:, 2], wo[:, 2]) > np.cos(np.radians(85.0))
         assert np.isfinite(rho).all() and np.median(rel) < med        # measured 6.5e-4, 2.2e-3
         assert rel[inner].max() < inner_max and rel.max() < all_max    # measured 1.1e-3, 2.0e-2; 8.7e-2, 0.12
+
+
+@pytest.mark.parametrize("shape", [(8, 16), (1, 12)])
+def test_the_compiled_mixture_is_bitwise_the_numpy_bilinear_mixture(shape):
+    """svbrdf.mixture_at (compiled) against eq. 18 written with DirectionGrid.bilinear in numpy, the form it
+    replaced: equal to the last bit, at the pole, the horizon, below it, and with zero weights skipped."""
+    grid = DirectionGrid(*shape)
+    rng = np.random.default_rng(7)
+    tables = rng.uniform(0.0, 5.0, (5, grid.n_theta * grid.n_phi))
+    neighbours = rng.integers(0, 5, (50, 4)).astype(np.int32)
+    weights = rng.uniform(0.0, 1.0, (50, 4)).astype(np.float32)
+    weights[rng.uniform(size=(50, 4)) < 0.3] = 0.0
+    index = rng.integers(0, 50, 2000)
+    d = rng.standard_normal((2000, 3))
+    d[:10] = [0.0, 0.0, 1.0]                       # the pole
+    d[10:20, 2] = 0.0                              # the horizon
+    d /= np.linalg.norm(d, axis=1, keepdims=True)  # half of them below it
+    at = grid.bilinear(d)
+    cells, bw = np.moveaxis(at.cells, 0, -1), np.moveaxis(at.weights, 0, -1)
+    expected = np.zeros(len(index))
+    for k in range(neighbours.shape[1]):
+        w = weights[index, k]
+        use = w != 0
+        vals = np.sum(tables[neighbours[index[use], k][:, None], cells[use]] * bw[use], axis=-1)
+        expected[use] += w[use] * vals
+    t, p = grid.coordinates(d)
+    got = mixture_at(tables, neighbours, weights, index, t, p, grid.n_theta, grid.n_phi)
+    assert np.array_equal(got, expected)

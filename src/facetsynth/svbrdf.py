@@ -61,6 +61,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numba
 import numpy as np
 
 from .errors import InputError
@@ -76,6 +77,40 @@ CHUNK = 1 << 16   # directions evaluated per block: bounds eval's memory
 NORMAL_FILE = "normal.exr"
 NORMAL_UNIT_TOL = 1e-3   # |n| - 1 accepted on load (then renormalised)
 MAX_GRID_CELLS = 1 << 20   # a plane or direction grid's side on load: far beyond any fit (paper scale: 4096)
+
+
+@numba.njit(cache=True, nogil=True)
+def mixture_at(table, neighbours, weights, index, t, p, n_theta, n_phi):
+    """Eq. 18's mixture sum_k w(x, k) table[j(x, k)] at continuous cell coordinates (t, p) (N,)
+    (:meth:`DirectionGrid.coordinates`) for points ``index`` (N,): each table read as
+    :class:`facetsynth.grid.Bilinear` reads it (theta clamped, phi periodic), with its arithmetic in its order,
+    so the result is bitwise numpy's (tests/test_svbrdf.py). ``table`` (R, cells), ``neighbours`` and
+    ``weights`` (P, K); a zero weight reads nothing."""
+    out = np.zeros(index.size)
+    for s in range(index.size):
+        x = index[s]
+        tc = min(max(t[s], 0.0), n_theta - 1.0)
+        t0 = min(int(np.floor(tc)), n_theta - 2) if n_theta > 1 else 0
+        ft = tc - t0 if n_theta > 1 else 0.0
+        t1 = min(t0 + 1, n_theta - 1)
+        floor_p = np.floor(p[s])
+        fp = p[s] - floor_p
+        p0 = int(floor_p) % n_phi
+        p1 = (p0 + 1) % n_phi
+        cells = (t0 * n_phi + p0, t0 * n_phi + p1, t1 * n_phi + p0, t1 * n_phi + p1)
+        bw = ((1 - ft) * (1 - fp), (1 - ft) * fp, ft * (1 - fp), ft * fp)
+        acc = 0.0
+        for k in range(neighbours.shape[1]):
+            w = weights[x, k]
+            if w != 0:
+                row = table[neighbours[x, k]]
+                value = row[cells[0]] * bw[0]
+                value += row[cells[1]] * bw[1]
+                value += row[cells[2]] * bw[2]
+                value += row[cells[3]] * bw[3]
+                acc += w * value
+        out[s] = acc
+    return out
 
 
 def normal_problem(normal: np.ndarray, tol: float = NORMAL_UNIT_TOL) -> str | None:
@@ -339,20 +374,12 @@ class SVBRDF:
         """sum_k w(x, k) table[j(x, k)](R(phi_x) d) for points ``index`` (N,) and directions d (N, 3); ``table``
         is (R, cells of ``grid``), one flattened table per representative; phi_x the point's ``rotation``
         (a material whose frame turns across the sample: a representative and a per-point turn, eq. 13)."""
+        index = np.asarray(index, np.intp)
         if self.rotation is not None:
             d = turn(d, self.rotation[index])
-        at = grid.bilinear(d)
-        cells, bw = np.moveaxis(at.cells, 0, -1), np.moveaxis(at.weights, 0, -1)     # (N, 4) each
-        out = np.zeros(len(index))
-        for k in range(self.neighbours.shape[1]):
-            w = self.weights[index, k]
-            use = w != 0
-            if not use.any():
-                continue
-            rep = self.neighbours[index[use], k]
-            vals = np.sum(table[rep[:, None], cells[use]] * bw[use], axis=-1)
-            out[use] += w[use] * vals
-        return out
+        t, p = grid.coordinates(d)
+        return mixture_at(np.ascontiguousarray(table), self.neighbours, self.weights, index.ravel(),
+                          t.ravel(), p.ravel(), grid.n_theta, grid.n_phi).reshape(index.shape)
 
     def ndf_at(self, index: np.ndarray, h: np.ndarray) -> np.ndarray:
         """The per-point normalised NDF D(x, h) (eq. 18 mixture, clipped at 0) at points (N,), half vectors (N, 3)."""
