@@ -227,8 +227,9 @@ def owned_kd(kd: np.ndarray, owner: np.ndarray, representatives: np.ndarray) -> 
     (``representatives`` (R,) point numbers) where it owns none. What groups representatives into materials:
     one point's kd is one point's separation, and the ggx-tiles capture's representative 9 had kd 0.117 (its
     4681 points' median 0.150) and ks 0, so its points stayed a material of their own (issue 29)."""
-    out = np.asarray(kd, float)[np.asarray(representatives, np.intp)].copy()
+    kd = np.asarray(kd, float)
+    out = kd[np.asarray(representatives, np.intp)]
     owner = np.asarray(owner, np.intp)
     for k in np.unique(owner):
-        out[k] = np.median(np.asarray(kd, float)[owner == k], axis=0)
+        out[k] = np.median(kd[owner == k], axis=0)
     return out
