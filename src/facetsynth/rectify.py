@@ -16,6 +16,8 @@ from .plane import PlaneGrid
 
 # OpenCV puts pixel (0, 0)'s centre at (0, 0); OpenImageIO at (0.5, 0.5).
 _CV_TO_OIIO = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
+# A cell whose filter gave the sample's own pixels less weight than this saw none (its samples are invalid).
+MIN_COVER = 1e-3
 
 
 def rectified_to_camera(camera: Camera, grid: PlaneGrid) -> np.ndarray:
@@ -41,6 +43,37 @@ def warp_to_plane(image: np.ndarray, camera: Camera, grid: PlaneGrid, filtername
     if dst.has_error:
         raise RuntimeError(f"OpenImageIO warp failed: {dst.geterror()}")
     return dst.get_pixels(oiio.FLOAT).reshape(grid.rows, grid.cols, image.shape[-1])
+
+
+def sample_pixels(camera: Camera, width: float, height: float) -> np.ndarray:
+    """(H, W) float32: 1 for the pixels that see nothing but the sample, 0 elsewhere: all four corners meet the
+    plane ahead of the camera inside its ``width`` x ``height`` about the origin (the plane's image of the
+    rectangle is convex, so the whole pixel is inside). A pixel across the sample's edge mixes it with the
+    background and is no measurement of either (issue 29: the demo's far row of points, half the truth's kd
+    and ks, was drawn by such pixels)."""
+    cols, rows = np.meshgrid(np.arange(camera.width + 1) - 0.5, np.arange(camera.height + 1) - 0.5)
+    corners = np.stack([cols, rows, np.ones_like(cols)], axis=-1) @ np.linalg.inv(camera.plane_homography()).T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xy = corners[..., :2] / corners[..., 2:]
+    points = np.concatenate([xy, np.zeros(xy.shape[:-1] + (1,))], axis=-1)
+    with np.errstate(invalid="ignore"):
+        ahead = (points @ camera.R.T + camera.t)[..., 2] > 0
+        inside = ahead & (np.abs(xy[..., 0]) <= width / 2) & (np.abs(xy[..., 1]) <= height / 2)
+    return (inside[:-1, :-1] & inside[:-1, 1:] & inside[1:, :-1] & inside[1:, 1:]).astype(np.float32)
+
+
+def warp_sample(image: np.ndarray, weight: np.ndarray, camera: Camera, grid: PlaneGrid,
+                filtername: str = "triangle") -> tuple[np.ndarray, np.ndarray]:
+    """:func:`warp_to_plane` of the pixels that see the sample alone (``weight`` (H, W), :func:`sample_pixels`),
+    renormalised (normalised convolution: the warp of ``image * weight`` over that of ``weight``): a cell at
+    the sample's or the image's edge is the filter's average of the sample's pixels, not of the sample, the
+    background and the black beyond the image. Returns the cells (rows, cols, C) and whether each saw any
+    such pixel (rows, cols) (cells that did not are 0)."""
+    w = np.asarray(weight, np.float32)[..., None]
+    warped = warp_to_plane(np.dstack([image * w, w]), camera, grid, filtername)
+    cover = warped[..., -1:]
+    seen = cover[..., 0] > MIN_COVER
+    return np.divide(warped[..., :-1], cover, out=np.zeros_like(warped[..., :-1]), where=seen[..., None]), seen
 
 
 def visible_cells(camera: Camera, grid: PlaneGrid) -> np.ndarray:

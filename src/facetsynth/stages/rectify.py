@@ -16,7 +16,7 @@ from ..metrics import marker_centroids, relative_errors
 from ..errors import InputError
 from ..camera import Camera
 from ..plane import PlaneGrid
-from ..rectify import native_resolution, visible_cells, warp_to_plane
+from ..rectify import native_resolution, sample_pixels, visible_cells, warp_sample
 from ..render import radiance
 from ..scene import Scene
 from .common import RuleFiles, StageSettings
@@ -54,7 +54,8 @@ def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threa
     ``resolution`` "auto": the grid with as many cells as camera pixels see the sample
     (:func:`facetsynth.rectify.native_resolution`), logged; ``resolution_rule`` in the metrics says which.
 
-    Writes ``outputs.frames/NNNN.exr`` (R, G, B, ``saturated``), and
+    Writes ``outputs.frames/NNNN.exr`` (R, G, B, ``saturated``: 1 where a clipped pixel or no pixel of the sample
+    alone reached the cell, i.e. no valid sample), and
     ``outputs.geometry`` (JSON): the grid and its (row, col) -> (x, y) mapping, the
     camera position (the view point V), the lights, the frame files and the
     ``visible`` cells. Cells are square; rows follow from the sample's aspect. Frames are warped on
@@ -88,11 +89,13 @@ def plane_grid(capture: dict, camera: Camera, resolution: int | str, manifest: P
 
 def warp_frames(capture: dict, camera: Camera, grid: PlaneGrid, filtername: str, frames_dir: Path, manifest: Path,
                 threads: int = 1) -> list[dict]:
-    """Every HDR frame warped onto ``grid`` (OpenImageIO filter ``filtername``,
-    :func:`facetsynth.rectify.warp_to_plane`) into ``frames_dir/NNNN.exr`` on ``threads`` threads, published
+    """Every HDR frame warped onto ``grid`` from the pixels that see the sample alone (OpenImageIO filter
+    ``filtername``, :func:`facetsynth.rectify.warp_sample`; a cell that saw none is marked ``saturated``: no
+    valid sample) into ``frames_dir/NNNN.exr`` on ``threads`` threads, published
     whole (:func:`facetsynth.fileio.atomic_dir`: an interrupted run resumes, skipping the frames already
     warped); returns each frame's geometry entry (its file, relative to the geometry's folder, and light)."""
-    key = {"hdr": file_key(manifest), "grid": grid.to_dict(), "filter": filtername}
+    key = {"hdr": file_key(manifest), "grid": grid.to_dict(), "filter": filtername, "weights": "sample pixels"}
+    on_sample = sample_pixels(camera, capture["sample"]["width"], capture["sample"]["height"])
     with atomic_dir(frames_dir, key) as staging:
 
         def rectify_frame(job: tuple[int, dict]) -> dict:
@@ -100,8 +103,9 @@ def warp_frames(capture: dict, camera: Camera, grid: PlaneGrid, filtername: str,
             out = staging / f"{q:04d}.exr"
             if not out.exists():  # else rectified before an interruption
                 rgb, saturated = read_frame(frame["exposures"][0]["file"])
-                warped = warp_to_plane(np.dstack([rgb, saturated]), camera, grid, filtername)
-                write_exr(out, {"RGB": warped[..., :3], "saturated": (warped[..., 3] > 0).astype(np.float32)},
+                warped, seen = warp_sample(np.dstack([rgb, saturated]), on_sample, camera, grid, filtername)
+                invalid = (warped[..., 3] > 0) | ~seen
+                write_exr(out, {"RGB": warped[..., :3], "saturated": invalid.astype(np.float32)},
                           precision="float24")
             return {"file": f"{frames_dir.name}/{q:04d}.exr", "light": frame["light"]}
 

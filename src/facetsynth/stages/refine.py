@@ -311,8 +311,8 @@ def half_and_denominator(model: SVBRDF, index: np.ndarray, pp: np.ndarray, i: np
 
 def choose_turns(model: SVBRDF, capture: RectifiedCapture, specular, valid, settings: Settings,
                  threads: int = 1, points: np.ndarray | None = None) -> tuple[SVBRDF, dict]:
-    """Each point's NDF as the one representative, turned by whole sectors within ``turn_window_deg``, that
-    best explains its specular samples (:func:`facetsynth.refine.best_turns`; candidates: the anisotropic
+    """Each point's NDF as the one representative, turned within ``turn_window_deg`` (whole sectors, then a
+    fraction of one), that best explains its specular samples (:func:`facetsynth.refine.best_turns`; candidates: the anisotropic
     representatives of its eq. 18 mixture of its own material; a point whose NDF is one isotropic
     representative gets no turn), where that lowers its error by more than ``turn_margin`` against
     the pipeline's mixture and turn; elsewhere (an isotropic lobe: every turn fits alike) the pipeline's NDF
