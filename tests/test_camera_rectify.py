@@ -95,6 +95,22 @@ def test_cells_at_the_samples_edge_average_the_samples_pixels_alone(camera):
     assert not seen.any() and np.all(cells == 0)
 
 
+def test_a_camera_that_sees_only_the_sample_takes_every_pixel():
+    """A dome's capture (rti.lp's stated default: orthographic, top-down, the image the sample, 0.1 mm pixels):
+    every pixel sees the sample alone, its outer corners on the edge up to rounding, and every cell of the native
+    grid is seen (at first the outer rows of pixels fell outside by rounding: 619 of the leaf's 96 100 points had
+    no sample)."""
+    width, height, pixel = 310, 200, 1e-4
+    camera = Camera(width, height, np.array([[1 / pixel, 0, (width - 1) / 2], [0, 1 / pixel, (height - 1) / 2],
+                                             [0, 0, 1]]), np.diag([1.0, -1.0, -1.0]), np.array([0, 0, 1.0]),
+                    projection="orthographic")
+    assert sample_pixels(camera, width * pixel, height * pixel).all()
+    cells, seen = warp_sample(np.full((height, width, 3), 0.7), np.ones((height, width)), camera,
+                              PlaneGrid(width * pixel, height * pixel, width, height))
+    assert seen.all()
+    np.testing.assert_allclose(cells, 0.7, rtol=1e-6)
+
+
 def test_distorted_camera_is_refused_with_a_clear_error(camera):
     distorted = Camera(camera.width, camera.height, camera.K, camera.R, camera.t, np.array([0.1, 0, 0, 0, 0]))
     with pytest.raises(InputError, match="distortion"):

@@ -18,6 +18,9 @@ from .plane import PlaneGrid
 _CV_TO_OIIO = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
 # A cell whose filter gave the sample's own pixels less weight than this saw none (its samples are invalid).
 MIN_COVER = 1e-3
+# Pixel corners this far (relative to the sample's size) beyond its edge count as on it: a dome's capture whose
+# image is the sample (rti.lp) puts the outer corners on the edge, up to rounding.
+EDGE_SLACK = 1e-9
 
 
 def rectified_to_camera(camera: Camera, grid: PlaneGrid) -> np.ndarray:
@@ -48,7 +51,7 @@ def warp_to_plane(image: np.ndarray, camera: Camera, grid: PlaneGrid, filtername
 def sample_pixels(camera: Camera, width: float, height: float) -> np.ndarray:
     """(H, W) float32: 1 for the pixels that see nothing but the sample, 0 elsewhere: all four corners meet the
     plane ahead of the camera inside its ``width`` x ``height`` about the origin (the plane's image of the
-    rectangle is convex, so the whole pixel is inside). A pixel across the sample's edge mixes it with the
+    rectangle is convex, so the whole pixel is inside; corners on the edge count, :data:`EDGE_SLACK`). A pixel across the sample's edge mixes it with the
     background and is no measurement of either (issue 29: the demo's far row of points, half the truth's kd
     and ks, was drawn by such pixels)."""
     cols, rows = np.meshgrid(np.arange(camera.width + 1) - 0.5, np.arange(camera.height + 1) - 0.5)
@@ -58,7 +61,8 @@ def sample_pixels(camera: Camera, width: float, height: float) -> np.ndarray:
     points = np.concatenate([xy, np.zeros(xy.shape[:-1] + (1,))], axis=-1)
     with np.errstate(invalid="ignore"):
         ahead = (points @ camera.R.T + camera.t)[..., 2] > 0
-        inside = ahead & (np.abs(xy[..., 0]) <= width / 2) & (np.abs(xy[..., 1]) <= height / 2)
+        slack = EDGE_SLACK * max(width, height)      # a corner on the edge is on it (rounding)
+        inside = ahead & (np.abs(xy[..., 0]) <= width / 2 + slack) & (np.abs(xy[..., 1]) <= height / 2 + slack)
     return (inside[:-1, :-1] & inside[:-1, 1:] & inside[1:, :-1] & inside[1:, 1:]).astype(np.float32)
 
 
