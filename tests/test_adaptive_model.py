@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from facetsynth import cluster, microfacet
-from facetsynth import synthesis as syn
+from facetsynth import synthesis
 from facetsynth.grid import DirectionGrid
 from facetsynth.partial_ndf import fresnel_cosine
 from test_synthesis import rel_l2, single_view_domain
@@ -33,19 +33,19 @@ def on_domain(d, grid=GRID):
 # ---------------------------------------------------------------------------- (A) isotropy
 def test_isotropy_statistic_on_analytic_ggx():
     d, w = on_domain(ggx((0.2, 0.2)))
-    assert syn.anisotropy(d, w, GRID) < 1e-6 < THRESHOLD
+    assert synthesis.anisotropy(d, w, GRID) < 1e-6 < THRESHOLD
     for frame in (0.0, 0.4, 1.1, 2.0):
         d, w = on_domain(ggx((0.1, 0.3), frame))
-        assert syn.anisotropy(d, w, GRID) > 2 * THRESHOLD
-    assert np.isinf(syn.anisotropy(np.zeros(GRID.shape), w, GRID))       # no data: never isotropic
+        assert synthesis.anisotropy(d, w, GRID) > 2 * THRESHOLD
+    assert np.isinf(synthesis.anisotropy(np.zeros(GRID.shape), w, GRID))       # no data: never isotropic
 
 
 def test_isotropic_completion_recovers_the_ndf_and_carries_the_fresnel_cosine():
     truth = ggx((0.2, 0.2))
     d, w = on_domain(truth)
-    target = syn.hemisphere_target(w > 0, GRID)
+    target = synthesis.hemisphere_target(w > 0, GRID)
     view = np.array([np.sin(0.6), 0.0, np.cos(0.6)])
-    c = syn.complete_isotropic(d, w, GRID, target, view=view)
+    c = synthesis.complete_isotropic(d, w, GRID, target, view=view)
     assert c.iterations == 0 and not c.merges and 0.5 < c.coverage <= 1.0
     used = np.mean(w > 0, axis=1) >= 1 / 3                                   # rings the domain covers by a third
     np.testing.assert_allclose(c.ndf[used], truth[used], rtol=1e-9)         # at every azimuth

@@ -23,7 +23,7 @@ from facetsynth.calibration import mirror
 from facetsynth.calibration.rigfile import RigCalibration
 from facetsynth.errors import InputError
 from facetsynth.fileio import read_json, write_exr, write_json
-from facetsynth.stages import calibrate as stage
+from facetsynth.stages.calibrate import CalibrateSettings, calibrate
 
 RIG = "virtual-demo-calibration-error"
 
@@ -121,7 +121,7 @@ def test_zhang_alone_leaves_the_focal_length_loose(calibrated):
     """Without the carriage's known step the narrow lens (6 deg) leaves f to Zhang's tilted views: within 1 %
     (measured 0.54 %), where the step's length brings it to 0.1 %."""
     out, _, truth = calibrated
-    cal = stage.calibrate(out / "targets", stage.CalibrateSettings(scale_from_carriage=False))
+    cal = calibrate(out / "targets", CalibrateSettings(scale_from_carriage=False))
     focal = cal.camera().K[0, 0] / truth["camera"]["K"][0][0] - 1
     assert abs(focal) < 1e-2
     assert "focal_scaled_px" not in cal.data["residuals"]["scale"]
@@ -134,7 +134,7 @@ def test_no_checkerboard_is_an_error_naming_the_file(calibrated, tmp_path):
     write_exr(targets / "intrinsics" / "03.exr", {"RGB": np.full((160, 240, 3), 0.3, np.float32)},
               precision="float16")
     with pytest.raises(InputError, match=r"intrinsics/03\.exr: no checkerboard of 8 x 5 inner corners"):
-        stage.calibrate(targets)
+        calibrate(targets)
 
 
 def test_led_fit_is_exact_on_exact_rays():

@@ -12,7 +12,8 @@ import pytest
 
 from facetsynth import cli
 from facetsynth.outputs import MARKER
-from facetsynth.stencil import model as Mo, readers
+from facetsynth.stencil import readers
+from facetsynth.stencil.model import Mode, StencilModel, evaluate_utia
 from facetsynth.stencil.export import model_to_json
 from test_predict import captured  # noqa: F401  (the module-scoped capture + SVBRDF fixture)
 
@@ -22,8 +23,8 @@ from conftest import RGL_DIR
 def synth(phis_deg):
     """A stencil model with one mode per axis (as tests/stencil/test_stencil_model_fit.synth)."""
     cols = [(0.2, 0.3, 0.9), (0.9, 0.2, 0.1)]
-    modes = tuple(Mo.Mode(np.deg2rad(p), 0.7, 0.4, 0.04, 0.05, 1.0, 6.0, c) for p, c in zip(phis_deg, cols))
-    return Mo.StencilModel(modes, (0.0,) * (len(modes) - 1), 0.05, modes[-1].m, 4.0, 60.0, 0.4, 0.04)
+    modes = tuple(Mode(np.deg2rad(p), 0.7, 0.4, 0.04, 0.05, 1.0, 6.0, c) for p, c in zip(phis_deg, cols))
+    return StencilModel(modes, (0.0,) * (len(modes) - 1), 0.05, modes[-1].m, 4.0, 60.0, 0.4, 0.04)
 
 
 def run(argv, capsys):
@@ -122,7 +123,7 @@ def test_a_non_empty_folder_is_written_only_with_force_or_when_the_command_made_
 def test_stencil_writers_refuse_to_replace_their_input(tmp_path, capsys):
     """`stencil-edit fit/stencil.json --out fit` would replace its own input: refused even with --force."""
     bin_path = tmp_path / "two-thread.bin"
-    readers.write_utia_bin(bin_path, Mo.evaluate_utia(synth((20, 110))))
+    readers.write_utia_bin(bin_path, evaluate_utia(synth((20, 110))))
     fit = tmp_path / "fit"
     assert run(["stencil-fit", bin_path, "--out", fit], capsys)[0] == 0
     assert run(["stencil-fit", bin_path, "--out", fit], capsys)[0] == 0      # its own folder: rerun is fine
@@ -218,7 +219,7 @@ def bad(tmp_path_factory):
     f = dict(rgl)
     f["rgb"] = rgl["rgb"] - 0.5 * rgl["rgb"].max()                      # wrong offset: far beyond noise
     readers.write_tensor_file(d / "rgb-offset.bsdf", f)
-    b = Mo.evaluate_utia(synth((20,)))
+    b = evaluate_utia(synth((20,)))
     readers.write_utia_bin(d / "nan.bin", np.where(np.arange(b.size).reshape(b.shape) % 97 == 0, np.nan, b))
     readers.write_utia_bin(d / "neg.bin", -b)
     readers.write_utia_bin(d / "zero.bin", np.zeros_like(b))

@@ -8,7 +8,7 @@ import copy
 import numpy as np
 import pytest
 
-from facetsynth import manifest as manifest_io
+from facetsynth import manifest
 from facetsynth.camera import Camera
 from facetsynth.errors import InputError
 from facetsynth.lightplane import LightTriangulation, light_plane
@@ -75,11 +75,11 @@ def _dome_manifest() -> dict:
 
 def test_manifest_accepts_directional_lights_and_orthographic_cameras():
     m = _dome_manifest()
-    manifest_io.validate(m, "dome.json")
-    lights = manifest_io.lights(m["frames"])
+    manifest.validate(m, "dome.json")
+    lights = manifest.lights(m["frames"])
     assert lights.shape == (6, 4) and np.all(lights[:, 3] == 0)
     np.testing.assert_allclose(np.linalg.norm(lights[:, :3], axis=1), 1.0)
-    assert manifest_io.camera(m).orthographic
+    assert manifest.camera(m).orthographic
 
 
 @pytest.mark.parametrize("change, where", [
@@ -91,7 +91,7 @@ def test_manifest_refuses_bad_directional_captures_naming_the_key(change, where)
     m = copy.deepcopy(_dome_manifest())
     change(m)
     with pytest.raises(InputError, match="dome.json") as info:
-        manifest_io.validate(m, "dome.json")
+        manifest.validate(m, "dome.json")
     assert where in str(info.value)
 
 

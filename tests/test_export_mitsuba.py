@@ -28,8 +28,8 @@ import pytest
 
 pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install mitsuba, or the test extra)")
 
-from facetsynth import manifest as manifest_io  # noqa: E402
-from facetsynth import mitsuba_capture as mc  # noqa: E402
+from facetsynth import manifest  # noqa: E402
+from facetsynth import mitsuba_capture  # noqa: E402
 from facetsynth.errors import InputError  # noqa: E402
 from facetsynth.export.mitsuba import export_mitsuba  # noqa: E402
 from facetsynth.fileio import read_rgb  # noqa: E402
@@ -95,7 +95,7 @@ def small(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def mi(small):
-    mi = mc.mitsuba()
+    mi = mitsuba_capture.mitsuba()
     small["plugin"].register()
     return mi
 
@@ -338,18 +338,18 @@ def test_demo_export_renders_as_predict(demo_run, tmp_path, mi):
     done = export_mitsuba(results / "svbrdf", tmp_path / "mitsuba")
     render = _import(tmp_path / "mitsuba" / "render.py", "facetsynth_export_render")
     manifest_path = results / "validate" / "heldout" / "paper" / "manifest.json"
-    m = manifest_io.load(manifest_path, check_files=False)
-    camera = manifest_io.camera(m)
+    m = manifest.load(manifest_path, check_files=False)
+    camera = manifest.camera(m)
     predictions = results / "validate" / "predictions" / "paper" / "ours"
     pm = json.loads((predictions / "manifest.json").read_text())
-    mask = mc.sample_pixels(camera, (m["sample"]["width"], m["sample"]["height"]), markers=None)
+    mask = mitsuba_capture.sample_pixels(camera, (m["sample"]["width"], m["sample"]["height"]), markers=None)
     images = [read_rgb(predictions / f["exposures"][0]["file"]) for f in pm["frames"]]
     best = int(np.argmax([img[mask].sum() for img in images]))
     q = pm["frames"][best]["source_frame"]
     predicted = images[best]
 
     # render.py's manifest camera is mitsuba_capture's sensor
-    sensor, reference = render.manifest_camera(m["camera"]), mc.sensor_dict(camera)
+    sensor, reference = render.manifest_camera(m["camera"]), mitsuba_capture.sensor_dict(camera)
     assert sensor["fov"] == pytest.approx(reference["fov"], rel=1e-12)
     assert sensor["ppx"] == pytest.approx(reference["principal_point_offset_x"], abs=1e-12)
     assert sensor["ppy"] == pytest.approx(reference["principal_point_offset_y"], abs=1e-12)

@@ -8,10 +8,11 @@ import numpy as np
 import pytest
 from scipy.ndimage import map_coordinates
 
-from facetsynth import cluster, partial_ndf as pndf, tables
+from facetsynth import cluster, tables
 from facetsynth.coverage import LightFootprint
 from facetsynth.grid import DirectionGrid
 from facetsynth.lightplane import LightTriangulation
+from facetsynth.partial_ndf import SHADOWING_GRID, _shadowing_area, _shadowing_kernel, projected_area_table
 
 from test_stages import one_material, rig_lights, write_rectified
 from test_sampling_invariance import paper_lights
@@ -26,9 +27,9 @@ def test_shadowing_area_by_fft_equals_the_dense_integral(grid):
     rng = np.random.default_rng(3)
     d = rng.random((6,) + grid.shape) * (rng.random((6,) + grid.shape) > 0.5)
     d[0] = 0.0                                                       # an all-zero NDF stays all zero
-    dense = pndf.projected_area_table(d, grid, pndf.SHADOWING_GRID.directions.reshape(-1, 3))
-    fast = pndf._shadowing_area(d, grid)
-    assert pndf._shadowing_kernel(grid)[0] == ("dense" if grid.n_phi % 32 else "fft")
+    dense = projected_area_table(d, grid, SHADOWING_GRID.directions.reshape(-1, 3))
+    fast = _shadowing_area(d, grid)
+    assert _shadowing_kernel(grid)[0] == ("dense" if grid.n_phi % 32 else "fft")
     assert np.abs(fast - dense).max() <= 1e-12 * np.abs(dense).max()
     assert np.all(fast[0] == 0.0) or np.abs(fast[0]).max() < 1e-15
 

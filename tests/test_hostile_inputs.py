@@ -24,7 +24,7 @@ from conftest import REPO, hdr_outputs
 from facetsynth import cli
 from facetsynth.errors import InputError
 from facetsynth.fileio import read_exr, read_frame, read_json, read_yaml, write_exr
-from facetsynth.stages import hdr as hdr_stage
+from facetsynth.stages import hdr
 
 GOOD = {
     "version": 1, "units": "m", "sample": {"width": 0.1, "height": 0.1},
@@ -101,7 +101,7 @@ def check_warnings(folder, capsys):
 def hdr_error(folder, out):
     """The hdr stage on ``folder`` must refuse it, publishing nothing; returns the error."""
     with pytest.raises(InputError) as err:
-        hdr_stage.run(hdr_stage.Inputs(capture=folder), hdr_outputs(out))
+        hdr.run(hdr.Inputs(capture=folder), hdr_outputs(out))
     assert not (out / "frames").exists() and not (out / "manifest.json").exists()
     return str(err.value)
 
@@ -173,8 +173,8 @@ def test_the_tiny_rig_capture_passes_check_without_warnings(tiny, capsys):
 # --- 4, 11. EXR files: RGBA and extra channels, data windows, declared sizes --------------------------------
 
 def _exr(path, channels, **header):
-    hdr = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage, **header}
-    OpenEXR.File(hdr, {k: np.asarray(v, np.float32) for k, v in channels.items()}).write(str(path))
+    exr_header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage, **header}
+    OpenEXR.File(exr_header, {k: np.asarray(v, np.float32) for k, v in channels.items()}).write(str(path))
 
 
 @pytest.mark.parametrize("extra", [{"A": 1.0}, {"Z": 5.0}, {"A": 1.0, "Z": 5.0}, {"A": 0.5, "Y": 3.0}],
@@ -321,7 +321,7 @@ def test_a_frame_half_clipped_is_a_warning_in_check_and_hdr(toy, tmp_path, capsy
     assert any("1 frame(s) have more than 20 % of the sample's pixels clipped in every exposure (the most: "
                "frame 0, 50 %)" in w for w in warnings), warnings
     assert any("16.7 % of the sample's pixels over all 3 frames are clipped" in w for w in warnings), warnings
-    hdr_stage.run(hdr_stage.Inputs(capture=toy), hdr_outputs(tmp_path / "hdr"))
+    hdr.run(hdr.Inputs(capture=toy), hdr_outputs(tmp_path / "hdr"))
     recorded = json.loads((tmp_path / "hdr/metrics.json").read_text())["warnings"]
     assert any("frame 0, 50 %" in w for w in recorded), recorded
 
@@ -372,7 +372,7 @@ def test_exposure_times_at_the_ends_of_the_range_merge_finitely(toy, tmp_path, t
     mutated(toy, set_times)
     for q in range(3):                       # consistent brackets: radiance 0.2 / t_long
         write_exr(toy / FILES[2 * q], {"RGB": np.full((3, 4, 3), 0.2 * times[0] / times[1])})
-    hdr_stage.run(hdr_stage.Inputs(capture=toy), hdr_outputs(tmp_path / "hdr"))
+    hdr.run(hdr.Inputs(capture=toy), hdr_outputs(tmp_path / "hdr"))
     merged, _ = read_frame(tmp_path / "hdr/frames/0000.exr")
     np.testing.assert_allclose(merged, 0.2 / times[1], rtol=1e-4)
 

@@ -447,8 +447,9 @@ def test_a_real_sigint_stops_predict_cleanly(work):
 def test_a_closed_pipe_ends_quietly(work, argv):
     """Reproduced: `stencil-fit --json | (exit)` ended in a BrokenPipeError traceback. Now the command ends
     quietly, as Unix tools do: exit 141 (128 + SIGPIPE), nothing on stderr."""
-    from facetsynth.stencil import model as Mo, readers
-    readers.write_utia_bin(work / "t.bin", Mo.evaluate_utia(synth((20,))))
+    from facetsynth.stencil import readers
+    from facetsynth.stencil.model import evaluate_utia
+    readers.write_utia_bin(work / "t.bin", evaluate_utia(synth((20,))))
     (work / "results" / "hdr").mkdir(parents=True)
     (work / "results" / "hdr" / "metrics.json").write_text('{"frames": 3}')
     read, write = os.pipe()

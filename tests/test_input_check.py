@@ -16,8 +16,8 @@ import pytest
 from facetsynth import cli, manifest
 from facetsynth.errors import InputError
 from facetsynth.fileio import write_exr
-from facetsynth.stages import capture as capture_stage
-from facetsynth.stages import hdr as hdr_stage
+from facetsynth.stages import hdr
+from facetsynth.stages.capture import check_capture
 
 GOOD = {
     "version": 1, "units": "m", "sample": {"width": 0.1, "height": 0.1},
@@ -134,11 +134,12 @@ def test_bad_manifest_fails_check_with_file_key_and_reason(capture, capsys, case
 def test_the_import_stage_and_predict_refuse_a_manifest_as_check_does(capture, tmp_path, capsys):
     """One check for all: ``facetsynth check``, the import stage and ``predict`` give the same line."""
     from facetsynth.predict import predict
+    from facetsynth.stages.capture import Inputs, Outputs, Settings, run
     path = mutated(capture, lambda d: d["frames"][0]["light"].update(position=[0, 0, math.nan]))
     line = check_error(capture, capsys)
     with pytest.raises(InputError) as imported:
-        capture_stage.run(capture_stage.Inputs(path=capture), capture_stage.Outputs(capture=tmp_path / "out"),
-                          capture_stage.Settings(source="import", rig=None, seed=0, noise=False))
+        run(Inputs(path=capture), Outputs(capture=tmp_path / "out"),
+            Settings(source="import", rig=None, seed=0, noise=False))
     with pytest.raises(InputError) as predicted:
         predict(tmp_path / "no-model", path, tmp_path / "pred", progress=False)
     assert line.endswith(str(imported.value)) and str(imported.value) == str(predicted.value)
@@ -162,7 +163,7 @@ def test_a_file_name_that_cannot_be_a_path_is_an_input_error(capture, capsys, na
 ], ids=["saturation null", "R to 6 decimals", "close-up", "blue light", "unknown fields"])
 def test_legitimate_manifests_still_pass(capture, mutate):
     mutated(capture, mutate)
-    capture_stage.check_capture(capture)
+    check_capture(capture)
 
 
 def test_the_merged_hdr_capture_states_saturation_null(capture, tmp_path):
@@ -171,9 +172,9 @@ def test_the_merged_hdr_capture_states_saturation_null(capture, tmp_path):
              "exposures": [{"file": "frames/0002_e0.exr", "time": 1.0}]}
     write_exr(capture / third["exposures"][0]["file"], {"RGB": np.full((3, 4, 3), 0.2)})
     mutated(capture, lambda d: d["frames"].append(third))
-    hdr_stage.run(hdr_stage.Inputs(capture=capture),
-                  hdr_stage.Outputs(frames=tmp_path / "hdr/frames", manifest=tmp_path / "hdr/manifest.json",
-                                    metrics=tmp_path / "hdr/metrics.json"))
+    hdr.run(hdr.Inputs(capture=capture),
+            hdr.Outputs(frames=tmp_path / "hdr/frames", manifest=tmp_path / "hdr/manifest.json",
+                              metrics=tmp_path / "hdr/metrics.json"))
     assert manifest.load(tmp_path / "hdr/manifest.json")["saturation"] is None
 
 
@@ -232,7 +233,7 @@ def test_negative_pixels_are_a_warning_with_count_and_first_file(capture, capsys
     assert (f"facetsynth check: warning: {capture}: 4 negative value(s) in 2 of 4 exposure files "
             f"(first: {(capture / FILES[2]).resolve()}); hdr clips them to 0") in err
     with caplog.at_level(logging.WARNING):                    # the import stage logs the same warning
-        capture_stage.check_capture(capture)
+        check_capture(capture)
     assert "4 negative value(s)" in caplog.text
 
 

@@ -20,7 +20,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from facetsynth import microfacet as mf
+from facetsynth import microfacet
 
 KINDS = ("ggx", "beckmann")
 N = np.array([0.0, 0.0, 1.0])
@@ -51,69 +51,69 @@ def direction_grid(thetas_deg, phis_deg):
 def test_half_vector_basic():
     wi = sph(0.4, 0.3)
     wo = sph(0.9, 2.0)
-    h = mf.half_vector(wi, wo)
+    h = microfacet.half_vector(wi, wo)
     expected = (wi + wo) / np.linalg.norm(wi + wo)
     np.testing.assert_allclose(h, expected, rtol=0, atol=1e-15)
-    assert np.array_equal(mf.half_vector(wo, wi), h)
+    assert np.array_equal(microfacet.half_vector(wo, wi), h)
     # i = -o: undefined, returns n
-    np.testing.assert_array_equal(mf.half_vector(wi, -wi), N)
-    np.testing.assert_array_equal(mf.half_vector(sph(np.pi / 2, 1.0), -sph(np.pi / 2, 1.0)), N)
+    np.testing.assert_array_equal(microfacet.half_vector(wi, -wi), N)
+    np.testing.assert_array_equal(microfacet.half_vector(sph(np.pi / 2, 1.0), -sph(np.pi / 2, 1.0)), N)
     # broadcasting
-    assert mf.half_vector(np.zeros((4, 1, 3)) + wi, np.zeros((5, 3)) + wo).shape == (4, 5, 3)
+    assert microfacet.half_vector(np.zeros((4, 1, 3)) + wi, np.zeros((5, 3)) + wo).shape == (4, 5, 3)
 
 
 def test_to_local_convention():
     # the u axis at azimuth phi_frame maps to +x; v (phi_frame + 90 deg) to +y
     for pf in (0.0, 0.7, -2.1, 3.0):
-        np.testing.assert_allclose(mf.to_local(sph(np.pi / 2, pf), pf), [1, 0, 0], atol=1e-15)
+        np.testing.assert_allclose(microfacet.to_local(sph(np.pi / 2, pf), pf), [1, 0, 0], atol=1e-15)
         np.testing.assert_allclose(
-            mf.to_local(sph(np.pi / 2, pf + np.pi / 2), pf), [0, 1, 0], atol=1e-15
+            microfacet.to_local(sph(np.pi / 2, pf + np.pi / 2), pf), [0, 1, 0], atol=1e-15
         )
     v = sph(np.array([0.3, 1.0]), np.array([0.2, 4.0]))
-    out = mf.to_local(v, np.array([0.5, -1.0]))
+    out = microfacet.to_local(v, np.array([0.5, -1.0]))
     np.testing.assert_allclose(out[0], rot_z(v[0], -0.5), atol=1e-15)
     np.testing.assert_allclose(out[1], rot_z(v[1], 1.0), atol=1e-15)
     # phi_frame broadcasting over leading dims
-    assert mf.to_local(np.zeros((3, 1, 3)) + N, np.zeros(4)).shape == (3, 4, 3)
+    assert microfacet.to_local(np.zeros((3, 1, 3)) + N, np.zeros(4)).shape == (3, 4, 3)
 
 
 def test_ndf_closed_form_values_and_support():
     au, av = 0.2, 0.5
     # peak at n: 1 / (pi au av) for both kinds
     for kind in KINDS:
-        assert mf.ndf(N, au, av, 0.3, kind) == pytest.approx(1.0 / (np.pi * au * av), rel=1e-14)
-        assert mf.ndf(-N, au, av, 0.0, kind) == 0.0
-        assert mf.ndf(sph(np.pi / 2, 0.4), au, av, 0.0, kind) == 0.0  # h.n = 0
-        assert mf.ndf(sph(2.0, 0.4), au, av, 0.0, kind) == 0.0
+        assert microfacet.ndf(N, au, av, 0.3, kind) == pytest.approx(1.0 / (np.pi * au * av), rel=1e-14)
+        assert microfacet.ndf(-N, au, av, 0.0, kind) == 0.0
+        assert microfacet.ndf(sph(np.pi / 2, 0.4), au, av, 0.0, kind) == 0.0  # h.n = 0
+        assert microfacet.ndf(sph(2.0, 0.4), au, av, 0.0, kind) == 0.0
     # a written-out value (h at theta=0.3 along the local u axis, frame at 1.1)
     t = 0.3
     h = sph(t, 1.1)
     ggx = 1.0 / (np.pi * au * av * (np.sin(t) ** 2 / au**2 + np.cos(t) ** 2) ** 2)
     beck = np.exp(-np.tan(t) ** 2 / au**2) / (np.pi * au * av * np.cos(t) ** 4)
-    assert mf.ndf(h, au, av, 1.1, "ggx") == pytest.approx(ggx, rel=1e-13)
-    assert mf.ndf(h, au, av, 1.1, "beckmann") == pytest.approx(beck, rel=1e-13)
+    assert microfacet.ndf(h, au, av, 1.1, "ggx") == pytest.approx(ggx, rel=1e-13)
+    assert microfacet.ndf(h, au, av, 1.1, "beckmann") == pytest.approx(beck, rel=1e-13)
     # along v uses alpha_v
     hv = sph(t, 1.1 + np.pi / 2)
-    assert mf.ndf(hv, au, av, 1.1, "ggx") == pytest.approx(
+    assert microfacet.ndf(hv, au, av, 1.1, "ggx") == pytest.approx(
         1.0 / (np.pi * au * av * (np.sin(t) ** 2 / av**2 + np.cos(t) ** 2) ** 2), rel=1e-13
     )
     with pytest.raises(ValueError):
-        mf.ndf(N, 0.1, 0.1, kind="phong")
+        microfacet.ndf(N, 0.1, 0.1, kind="phong")
 
 
 def test_float32_inputs_compute_in_float64():
     wi = sph(0.5, 0.2).astype(np.float32)
     wo = sph(0.6, 2.2).astype(np.float32)
-    r32 = mf.rho(wi, wo, np.float32([0.1, 0.2, 0.3]), np.float32([1, 1, 1]), np.float32(1.5),
-                 np.float32(0.1), np.float32(0.3), np.float32(0.4))
-    r64 = mf.rho(wi.astype(np.float64), wo.astype(np.float64),
-                 np.float32([0.1, 0.2, 0.3]).astype(np.float64), [1, 1, 1],
-                 1.5, float(np.float32(0.1)), float(np.float32(0.3)), float(np.float32(0.4)))
+    r32 = microfacet.rho(wi, wo, np.float32([0.1, 0.2, 0.3]), np.float32([1, 1, 1]), np.float32(1.5),
+                         np.float32(0.1), np.float32(0.3), np.float32(0.4))
+    r64 = microfacet.rho(wi.astype(np.float64), wo.astype(np.float64),
+                         np.float32([0.1, 0.2, 0.3]).astype(np.float64), [1, 1, 1],
+                         1.5, float(np.float32(0.1)), float(np.float32(0.3)), float(np.float32(0.4)))
     assert r32.dtype == np.float64
     np.testing.assert_array_equal(r32, r64)
-    for fn in (mf.ndf, mf.projected_area, mf.shadowing):
+    for fn in (microfacet.ndf, microfacet.projected_area, microfacet.shadowing):
         assert fn(wi, np.float32(0.1), np.float32(0.2)).dtype == np.float64
-    assert mf.fresnel(np.float32(0.3), np.float32(1.5)).dtype == np.float64
+    assert microfacet.fresnel(np.float32(0.3), np.float32(1.5)).dtype == np.float64
 
 
 # ---------------------------------------------------------------------------
@@ -131,7 +131,7 @@ NDF_PARAMS = [(a, a, 0.0) for a in (0.005, 0.05, 0.2, 0.6, 1.0)] + [
 @pytest.mark.parametrize("kind", KINDS)
 @pytest.mark.parametrize("au,av,pf", NDF_PARAMS)
 def test_ndf_normalisation(kind, au, av, pf):
-    val = mf.ndf_normalisation_numerical(lambda h: mf.ndf(h, au, av, pf, kind))
+    val = microfacet.ndf_normalisation_numerical(lambda h: microfacet.ndf(h, au, av, pf, kind))
     # quadrature accuracy is < 1e-6 for anisotropy <= 10; the model is normalised
     assert abs(val - 1.0) < 1e-5, val
 
@@ -139,13 +139,13 @@ def test_ndf_normalisation(kind, au, av, pf):
 def test_quadrature_on_known_integrals():
     # constant D = 1/pi: A(k) = (1 + cos theta_k) / 2 (analytic), normalisation 1
     k = direction_grid([0, 20, 45, 70, 89, 90], [0, 100, 250])
-    a = mf.projected_area_numerical(k, lambda h: np.full(h.shape[:-1], 1.0 / np.pi))
+    a = microfacet.projected_area_numerical(k, lambda h: np.full(h.shape[:-1], 1.0 / np.pi))
     np.testing.assert_allclose(a, 0.5 * (1.0 + k[:, 2]), rtol=1e-12)
     # D = 3 cos(theta)/(2 pi): normalised; A(n) = 1
-    val = mf.ndf_normalisation_numerical(lambda h: 3.0 * h[..., 2] / (2.0 * np.pi))
+    val = microfacet.ndf_normalisation_numerical(lambda h: 3.0 * h[..., 2] / (2.0 * np.pi))
     assert val == pytest.approx(1.0, abs=1e-13)
     # shape handling
-    assert mf.projected_area_numerical(k.reshape(6, 3, 3), lambda h: h[..., 2] / np.pi).shape == (6, 3)
+    assert microfacet.projected_area_numerical(k.reshape(6, 3, 3), lambda h: h[..., 2] / np.pi).shape == (6, 3)
 
 
 # ---------------------------------------------------------------------------
@@ -166,8 +166,8 @@ K_GRID = direction_grid([0, 15, 30, 45, 60, 75, 85, 89, 89.9, 90], [0, 40, 95, 1
 @pytest.mark.parametrize("kind", KINDS)
 @pytest.mark.parametrize("au,av,pf", A_PARAMS)
 def test_projected_area_closed_form_matches_eq5_quadrature(kind, au, av, pf):
-    closed = mf.projected_area(K_GRID, au, av, pf, kind)
-    num = mf.projected_area_numerical(K_GRID, lambda h: mf.ndf(h, au, av, pf, kind))
+    closed = microfacet.projected_area(K_GRID, au, av, pf, kind)
+    num = microfacet.projected_area_numerical(K_GRID, lambda h: microfacet.ndf(h, au, av, pf, kind))
     rel = np.abs(closed / num - 1.0)
     assert np.all(np.isfinite(closed)) and np.all(closed > 0)
     assert rel.max() < 1e-5, (rel.max(), K_GRID[np.argmax(rel)])
@@ -178,31 +178,31 @@ def test_projected_area_strong_anisotropy_documented_accuracy(kind):
     # anisotropy ratio 20 is the documented worst case for the default n_phi
     au, av, pf = 0.01, 0.2, 0.3
     k = direction_grid([0, 30, 60, 85, 89], [0, 70, 200])
-    closed = mf.projected_area(k, au, av, pf, kind)
-    fn = lambda h: mf.ndf(h, au, av, pf, kind)  # noqa: E731
-    assert np.max(np.abs(mf.projected_area_numerical(k, fn) / closed - 1)) < 1e-3
-    assert np.max(np.abs(mf.projected_area_numerical(k, fn, n_phi=512) / closed - 1)) < 1e-5
+    closed = microfacet.projected_area(k, au, av, pf, kind)
+    fn = lambda h: microfacet.ndf(h, au, av, pf, kind)  # noqa: E731
+    assert np.max(np.abs(microfacet.projected_area_numerical(k, fn) / closed - 1)) < 1e-3
+    assert np.max(np.abs(microfacet.projected_area_numerical(k, fn, n_phi=512) / closed - 1)) < 1e-5
 
 
 @pytest.mark.parametrize("kind", KINDS)
 def test_shadowing_values(kind):
     for au, av, pf in A_PARAMS:
-        assert mf.shadowing(N, au, av, pf, kind) == 1.0
-        assert mf.projected_area(N, au, av, pf, kind) == 1.0
+        assert microfacet.shadowing(N, au, av, pf, kind) == 1.0
+        assert microfacet.projected_area(N, au, av, pf, kind) == 1.0
         # grazing and below horizon: S = 0, A finite and positive
         kg = sph(np.pi / 2, 0.3)
-        assert mf.shadowing(kg, au, av, pf, kind) == 0.0
-        assert mf.shadowing(sph(2.0, 0.3), au, av, pf, kind) == 0.0
+        assert microfacet.shadowing(kg, au, av, pf, kind) == 0.0
+        assert microfacet.shadowing(sph(2.0, 0.3), au, av, pf, kind) == 0.0
         # |k.n| semantics below the horizon
         kb = sph(0.7, 1.9) * [1.0, 1.0, -1.0]
-        assert mf.projected_area(kb, au, av, pf, kind) == mf.projected_area(
+        assert microfacet.projected_area(kb, au, av, pf, kind) == microfacet.projected_area(
             sph(0.7, 1.9), au, av, pf, kind
         )
-        assert mf.projected_area(-N, au, av, pf, kind) == 1.0
-    s = mf.shadowing(K_GRID, 0.3, 0.1, 0.2, kind)
+        assert microfacet.projected_area(-N, au, av, pf, kind) == 1.0
+    s = microfacet.shadowing(K_GRID, 0.3, 0.1, 0.2, kind)
     assert np.all((s >= 0) & (s <= 1))
     # grazing limit of A: alpha_k/2 (GGX), alpha_k/(2 sqrt(pi)) (Beckmann)
-    a = mf.projected_area(sph(np.pi / 2, 0.0), 0.3, 0.1, 0.0, kind)
+    a = microfacet.projected_area(sph(np.pi / 2, 0.0), 0.3, 0.1, 0.0, kind)
     assert a == pytest.approx(0.15 if kind == "ggx" else 0.15 / np.sqrt(np.pi), rel=1e-14)
 
 
@@ -215,12 +215,12 @@ def test_beckmann_lambda_written_out():
     a = 1.0 / (alpha * np.tan(t))
     lam = 0.5 * (erf(a) - 1.0) + np.exp(-a * a) / (2.0 * a * np.sqrt(np.pi))
     np.testing.assert_allclose(
-        mf.shadowing(sph(t, 0.8), alpha, alpha, 0.0, "beckmann"), 1.0 / (1.0 + lam), rtol=1e-13
+        microfacet.shadowing(sph(t, 0.8), alpha, alpha, 0.0, "beckmann"), 1.0 / (1.0 + lam), rtol=1e-13
     )
     # GGX Lambda = (sqrt(1 + alpha^2 tan^2) - 1)/2
     lam = 0.5 * (np.sqrt(1 + (alpha * np.tan(t)) ** 2) - 1)
     np.testing.assert_allclose(
-        mf.shadowing(sph(t, 0.8), alpha, alpha, 0.0, "ggx"), 1.0 / (1.0 + lam), rtol=1e-13
+        microfacet.shadowing(sph(t, 0.8), alpha, alpha, 0.0, "ggx"), 1.0 / (1.0 + lam), rtol=1e-13
     )
 
 
@@ -240,30 +240,30 @@ def test_fresnel_vs_sp_equations():
     eta = np.concatenate([[1.001, 1.01, 1.1], np.linspace(1.2, 5.0, 20), [7.0, 20.0]])
     c = np.concatenate([np.linspace(0.0, 1.0, 41), [1e-6, 1e-3, 0.999999]])
     E, C = np.meshgrid(eta, c)
-    np.testing.assert_allclose(mf.fresnel(C, E), fresnel_sp(C, E), rtol=1e-10, atol=1e-15)
+    np.testing.assert_allclose(microfacet.fresnel(C, E), fresnel_sp(C, E), rtol=1e-10, atol=1e-15)
     # |c| is used
-    np.testing.assert_array_equal(mf.fresnel(-C, E), mf.fresnel(C, E))
+    np.testing.assert_array_equal(microfacet.fresnel(-C, E), microfacet.fresnel(C, E))
 
 
 def test_fresnel_limits():
     eta = np.array([1.0, 1.0 + 1e-12, 1.0 + 1e-6, 1.33, 1.5, 2.5, 5.0, 1e3])
-    np.testing.assert_allclose(mf.fresnel(1.0, eta), ((eta - 1) / (eta + 1)) ** 2, rtol=1e-12, atol=0)
+    np.testing.assert_allclose(microfacet.fresnel(1.0, eta), ((eta - 1) / (eta + 1)) ** 2, rtol=1e-12, atol=0)
     c = np.linspace(0, 1, 101)
-    assert np.all(mf.fresnel(c, 1.0) == 0.0)  # no interface, no reflection (also at c = 0)
-    f_near1 = mf.fresnel(c[1:], 1.0 + 1e-9)
+    assert np.all(microfacet.fresnel(c, 1.0) == 0.0)  # no interface, no reflection (also at c = 0)
+    f_near1 = microfacet.fresnel(c[1:], 1.0 + 1e-9)
     assert np.all(np.isfinite(f_near1)) and np.all(f_near1 >= 0) and f_near1.max() < 1e-8
     for e in (1.0 + 1e-6, 1.5, 5.0, 1e3):
-        assert mf.fresnel(0.0, e) == pytest.approx(1.0, abs=1e-15)
+        assert microfacet.fresnel(0.0, e) == pytest.approx(1.0, abs=1e-15)
         # F = 1 - O(c): slope ~ 2 sqrt(2/(eta-1)) near eta = 1, ~ 2 eta for large eta
-        assert mf.fresnel(1e-12, e) == pytest.approx(fresnel_sp(1e-12, e), rel=1e-12)
-        assert 1.0 - 1e-8 < mf.fresnel(1e-12, e) < 1.0
-    f = mf.fresnel(c[:, None], np.linspace(1.0, 5.0, 50))
+        assert microfacet.fresnel(1e-12, e) == pytest.approx(fresnel_sp(1e-12, e), rel=1e-12)
+        assert 1.0 - 1e-8 < microfacet.fresnel(1e-12, e) < 1.0
+    f = microfacet.fresnel(c[:, None], np.linspace(1.0, 5.0, 50))
     assert np.all(np.isfinite(f)) and np.all((f >= 0) & (f <= 1))
     # monotone decreasing in c for eta > 1
-    assert np.all(np.diff(mf.fresnel(c, 1.5)) <= 0)
+    assert np.all(np.diff(microfacet.fresnel(c, 1.5)) <= 0)
     # total internal reflection for eta < 1
-    assert mf.fresnel(0.1, 0.7) == 1.0
-    assert mf.fresnel(1.0, 0.7) == pytest.approx(((0.7 - 1) / (0.7 + 1)) ** 2, rel=1e-12)
+    assert microfacet.fresnel(0.1, 0.7) == 1.0
+    assert microfacet.fresnel(1.0, 0.7) == pytest.approx(((0.7 - 1) / (0.7 + 1)) ** 2, rel=1e-12)
 
 
 # ---------------------------------------------------------------------------
@@ -276,25 +276,25 @@ def test_rho_equals_literal_eq6(kind):
     kd = np.array([0.1, 0.2, 0.3])
     ks = np.array([0.9, 0.5, 0.7])
     au, av, pf, eta = 0.15, 0.4, 0.9, 1.7
-    h = mf.half_vector(wi, wo)
+    h = microfacet.half_vector(wi, wo)
     lit = (
-        mf.ndf(h, au, av, pf, kind)
-        * mf.shadowing(wi, au, av, pf, kind)
-        * mf.shadowing(wo, au, av, pf, kind)
-        * mf.fresnel(np.sum(wi * h, -1), eta)
+        microfacet.ndf(h, au, av, pf, kind)
+        * microfacet.shadowing(wi, au, av, pf, kind)
+        * microfacet.shadowing(wo, au, av, pf, kind)
+        * microfacet.fresnel(np.sum(wi * h, -1), eta)
         / (4 * wi[:, 2] * wo[:, 2])
     )
     expected = kd / np.pi + ks * lit[:, None]
-    np.testing.assert_allclose(mf.rho(wi, wo, kd, ks, eta, au, av, pf, kind), expected, rtol=1e-12)
+    np.testing.assert_allclose(microfacet.rho(wi, wo, kd, ks, eta, au, av, pf, kind), expected, rtol=1e-12)
 
 
 def test_rho_broadcasting():
     wi = sph(np.array([0.2, 0.5, 0.9]), 0.0)[:, None, :]  # (3, 1, 3)
     wo = sph(0.4, np.array([0.0, 1.0, 2.0, 3.0]))  # (4, 3)
     kd = np.zeros((3, 4, 3))
-    out = mf.rho(wi, wo, kd, [1, 1, 1], np.full(4, 1.5), 0.2, 0.3, np.zeros((3, 1)))
+    out = microfacet.rho(wi, wo, kd, [1, 1, 1], np.full(4, 1.5), 0.2, 0.3, np.zeros((3, 1)))
     assert out.shape == (3, 4, 3)
-    np.testing.assert_array_equal(out[1, 2], mf.rho(wi[1, 0], wo[2], [0, 0, 0], [1, 1, 1], 1.5, 0.2, 0.3))
+    np.testing.assert_array_equal(out[1, 2], microfacet.rho(wi[1, 0], wo[2], [0, 0, 0], [1, 1, 1], 1.5, 0.2, 0.3))
 
 
 # ---------------------------------------------------------------------------
@@ -371,15 +371,15 @@ def test_rho_vs_mitsuba_roughconductor(mi, kind, au, av, eta, pf):
         g_mi[j] = dist.smith_g1(si.wi, hm) * dist.smith_g1(v, hm)
         d_mi[j] = dist.eval(hm)
 
-    ours = mf.rho(wi, wo, np.zeros(3), np.ones(3), eta, au, av, pf, kind)
+    ours = microfacet.rho(wi, wo, np.zeros(3), np.ones(3), eta, au, av, pf, kind)
     assert np.all(ours[:, 0] == ours[:, 2])
     ours = ours[:, 0]
     wil64, wol64 = wil.astype(np.float64), wol.astype(np.float64)
     # our model evaluated on exactly Mitsuba's (float32) local inputs, phi_frame = 0
-    ours_local = mf.rho(wil64, wol64, np.zeros(3), np.ones(3), eta, au, av, 0.0, kind)[:, 0]
+    ours_local = microfacet.rho(wil64, wol64, np.zeros(3), np.ones(3), eta, au, av, 0.0, kind)[:, 0]
     np.testing.assert_allclose(ours, ours_local, rtol=1e-5, atol=1e-15)
 
-    s_ours = mf.shadowing(wil64, au, av, 0.0, kind) * mf.shadowing(wol64, au, av, 0.0, kind)
+    s_ours = microfacet.shadowing(wil64, au, av, 0.0, kind) * microfacet.shadowing(wol64, au, av, 0.0, kind)
     if kind == "ggx":
         ref = f_mi
         np.testing.assert_allclose(g_mi, s_ours, rtol=MI_RTOL)
@@ -389,8 +389,8 @@ def test_rho_vs_mitsuba_roughconductor(mi, kind, au, av, eta, pf):
         assert np.max(np.abs(f_mi[pos] / ours_local[pos] - 1)) < 1e-2
         ref = np.where(g_mi > 0, f_mi * s_ours / np.where(g_mi > 0, g_mi, 1.0), f_mi)
 
-    h = mf.half_vector(wil64, wol64)
-    d_ours = mf.ndf(h, au, av, 0.0, kind)
+    h = microfacet.half_vector(wil64, wol64)
+    d_ours = microfacet.ndf(h, au, av, 0.0, kind)
     pos = d_mi > 0
     np.testing.assert_allclose(d_ours[pos], d_mi[pos], rtol=MI_RTOL_TAIL)
     assert np.all(d_ours[~pos] * h[~pos, 2] < 1e-18)
@@ -411,7 +411,7 @@ def test_mitsuba_fresnel_conductor_k0_is_eq3(mi):
     for eta in (1.05, 1.5, 2.5, 4.0):
         for c in (0.0, 0.05, 0.3, 0.7, 1.0):
             ref = mi.fresnel_conductor(c, dr.scalar.Complex2f(eta, 0.0))
-            assert mf.fresnel(c, eta) == pytest.approx(ref, rel=1e-5, abs=1e-7)
+            assert microfacet.fresnel(c, eta) == pytest.approx(ref, rel=1e-5, abs=1e-7)
 
 
 # ---------------------------------------------------------------------------
@@ -443,8 +443,8 @@ PROP = settings(max_examples=300, deadline=None)
 @PROP
 @given(direction(), direction(), rgb, rgb, eta_s, alpha, alpha, azimuth, kind_s)
 def test_prop_reciprocity_positivity_finiteness(wi, wo, kd, ks, eta, au, av, pf, kind):
-    r1 = mf.rho(wi, wo, kd, ks, eta, au, av, pf, kind)
-    r2 = mf.rho(wo, wi, kd, ks, eta, au, av, pf, kind)
+    r1 = microfacet.rho(wi, wo, kd, ks, eta, au, av, pf, kind)
+    r2 = microfacet.rho(wo, wi, kd, ks, eta, au, av, pf, kind)
     assert r1.shape == (3,)
     assert np.all(np.isfinite(r1)) and np.all(r1 >= 0)
     assert np.array_equal(r1, r2)  # bitwise reciprocity
@@ -458,25 +458,25 @@ def test_prop_reciprocity_positivity_finiteness(wi, wo, kd, ks, eta, au, av, pf,
 @given(direction(), direction(), eta_s, alpha, alpha, azimuth, azimuth, kind_s)
 def test_prop_rotation_equivariance(wi, wo, eta, au, av, pf, delta, kind):
     kd, ks = np.array([0.1, 0.0, 0.3]), np.array([1.0, 0.5, 0.25])
-    r1 = mf.rho(wi, wo, kd, ks, eta, au, av, pf, kind)
-    r2 = mf.rho(rot_z(wi, delta), rot_z(wo, delta), kd, ks, eta, au, av, pf + delta, kind)
+    r1 = microfacet.rho(wi, wo, kd, ks, eta, au, av, pf, kind)
+    r2 = microfacet.rho(rot_z(wi, delta), rot_z(wo, delta), kd, ks, eta, au, av, pf + delta, kind)
     np.testing.assert_allclose(r2, r1, rtol=1e-9, atol=1e-250)
 
 
 @PROP
 @given(direction(), alpha, alpha, azimuth, kind_s)
 def test_prop_component_ranges(k, au, av, pf, kind):
-    a = mf.projected_area(k, au, av, pf, kind)
-    s = mf.shadowing(k, au, av, pf, kind)
+    a = microfacet.projected_area(k, au, av, pf, kind)
+    s = microfacet.shadowing(k, au, av, pf, kind)
     assert np.isfinite(a) and a > 0
     assert np.isfinite(s) and 0.0 <= s <= 1.0 + 1e-15
-    d = mf.ndf(k, au, av, pf, kind)
+    d = microfacet.ndf(k, au, av, pf, kind)
     assert np.isfinite(d) and d >= 0
     if kind == "ggx" or max(au, av) <= 0.7:  # Beckmann peaks off-normal for alpha > 1/sqrt(2)
         assert d <= 1.0 / (np.pi * au * av) * (1 + 1e-12)  # peak at h = n
-    f = mf.fresnel(k[2], 1.0 + au * 4)
+    f = microfacet.fresnel(k[2], 1.0 + au * 4)
     assert np.isfinite(f) and 0.0 <= f <= 1.0
-    h = mf.half_vector(k, rot_z(k, pf))
+    h = microfacet.half_vector(k, rot_z(k, pf))
     assert abs(np.linalg.norm(h) - 1.0) < 1e-12
 
 
@@ -489,7 +489,7 @@ def test_edge_grazing_incidence(kind):
     c = 1e-9
     wi = np.array([math.sqrt(1 - c * c), 0.0, c])
     wo_mirror = np.array([-wi[0], 0.0, c])  # specular configuration: h = n
-    r = mf.rho(wi, wo_mirror, [0, 0, 0], [1, 1, 1], eta, au, av, 0.0, kind)
+    r = microfacet.rho(wi, wo_mirror, [0, 0, 0], [1, 1, 1], eta, au, av, 0.0, kind)
     # D(n) = 1/(pi au av), F(c=1e-9) = 1 - O(1e-9), A(grazing along u) = au/2 (GGX)
     # or au/(2 sqrt(pi)) (Beckmann), so rho = D / (4 A^2)
     a = au / 2 if kind == "ggx" else au / (2 * math.sqrt(math.pi))
@@ -498,21 +498,21 @@ def test_edge_grazing_incidence(kind):
     if kind == "ggx":
         assert r[0] == pytest.approx(1061.0329539459689, rel=1e-7)  # 1/(pi au^3 av)
     # grazing against normal viewing: finite, positive
-    r = mf.rho(wi, N, [0.2, 0.2, 0.2], [1, 1, 1], eta, au, av, 0.0, kind)
+    r = microfacet.rho(wi, N, [0.2, 0.2, 0.2], [1, 1, 1], eta, au, av, 0.0, kind)
     assert np.all(np.isfinite(r)) and np.all(r >= 0.2 / np.pi)
     # exactly grazing: 0
-    assert np.all(mf.rho(sph(np.pi / 2, 0.0), N, [1, 1, 1], [1, 1, 1], eta, au, av) == 0)
+    assert np.all(microfacet.rho(sph(np.pi / 2, 0.0), N, [1, 1, 1], [1, 1, 1], eta, au, av) == 0)
 
 
 @pytest.mark.parametrize("kind", KINDS)
 def test_edge_below_horizon_and_opposite(kind):
     args = ([0.3, 0.3, 0.3], [1, 1, 1], 1.5, 0.2, 0.2, 0.0, kind)
     wi = sph(0.5, 1.0)
-    assert np.all(mf.rho(wi, sph(1.8, 2.0), *args) == 0.0)
-    assert np.all(mf.rho(sph(1.8, 2.0), wi, *args) == 0.0)
-    assert np.all(mf.rho(wi, -wi, *args) == 0.0)  # i = -o
-    assert np.all(mf.rho(N, -N, *args) == 0.0)
-    assert np.all(mf.rho(-N, -N, *args) == 0.0)
+    assert np.all(microfacet.rho(wi, sph(1.8, 2.0), *args) == 0.0)
+    assert np.all(microfacet.rho(sph(1.8, 2.0), wi, *args) == 0.0)
+    assert np.all(microfacet.rho(wi, -wi, *args) == 0.0)  # i = -o
+    assert np.all(microfacet.rho(N, -N, *args) == 0.0)
+    assert np.all(microfacet.rho(-N, -N, *args) == 0.0)
 
 
 @pytest.mark.parametrize("kind", KINDS)
@@ -521,20 +521,20 @@ def test_edge_sharp_and_rough_lobes(kind):
     f0 = ((eta - 1) / (eta + 1)) ** 2
     # normal incidence and viewing: rho = D(n) F0 / 4 = F0 / (4 pi alpha^2)
     for a in (0.005, 1.0):
-        r = mf.rho(N, N, [0, 0, 0], [1, 1, 1], eta, a, a, 0.0, kind)
+        r = microfacet.rho(N, N, [0, 0, 0], [1, 1, 1], eta, a, a, 0.0, kind)
         np.testing.assert_allclose(r, f0 / (4 * math.pi * a * a), rtol=1e-13)
     # alpha = 0.005 over a dense grid including grazing: finite, non-negative
     d = direction_grid([0, 0.1, 1, 30, 60, 89.99, 89.9999999, 90], np.linspace(0, 360, 13))
     wi, wo = [a.reshape(-1, 3) for a in np.broadcast_arrays(d[:, None], d[None, :])]
     for au, av in ((0.005, 0.005), (0.005, 1.0), (1.0, 1.0)):
-        r = mf.rho(wi, wo, [0.1, 0.1, 0.1], [1, 1, 1], eta, au, av, 0.3, kind)
+        r = microfacet.rho(wi, wo, [0.1, 0.1, 0.1], [1, 1, 1], eta, au, av, 0.3, kind)
         assert np.all(np.isfinite(r)) and np.all(r >= 0)
     # both directions grazing (h.n -> 0): finite
     wi = np.array([math.sqrt(1 - 1e-18), 0.0, 1e-9])
     wo = np.array([0.0, math.sqrt(1 - 1e-18), 1e-9])
     for eta in (1.0, 1.0 + 1e-9, 5.0):
-        r = mf.rho(wi, wo, [0, 0, 0], [1, 1, 1], eta, 0.005, 0.005, 0.0, kind)
+        r = microfacet.rho(wi, wo, [0, 0, 0], [1, 1, 1], eta, 0.005, 0.005, 0.0, kind)
         assert np.all(np.isfinite(r)) and np.all(r >= 0)
     # eta = 1: no specular at all
-    r = mf.rho(sph(0.3, 0.0), sph(0.3, np.pi), [0.5, 0.5, 0.5], [1, 1, 1], 1.0, 0.1, 0.1, 0.0, kind)
+    r = microfacet.rho(sph(0.3, 0.0), sph(0.3, np.pi), [0.5, 0.5, 0.5], [1, 1, 1], 1.0, 0.1, 0.1, 0.0, kind)
     np.testing.assert_allclose(r, 0.5 / np.pi, rtol=1e-15)

@@ -16,8 +16,8 @@ import pytest
 pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install mitsuba, or the test extra): "
                                       "the independent-renderer tests need it")
 
-from facetsynth import manifest as manifest_io, microfacet  # noqa: E402
-from facetsynth import mitsuba_relief as mr  # noqa: E402
+from facetsynth import manifest, microfacet  # noqa: E402
+from facetsynth import mitsuba_relief  # noqa: E402
 from facetsynth.fileio import read_exr, read_rgb  # noqa: E402
 
 SIZE, LIGHTS, SPP = (48, 48), 24, 4
@@ -27,7 +27,7 @@ KD = np.array([0.6, 0.5, 0.4])
 @pytest.fixture(scope="module")
 def capture(tmp_path_factory) -> tuple[Path, dict]:
     out = tmp_path_factory.mktemp("relief") / "capture"
-    return out, mr.render_relief(out, SIZE, LIGHTS, SPP, sample_width=0.05, seed=0)
+    return out, mitsuba_relief.render_relief(out, SIZE, LIGHTS, SPP, sample_width=0.05, seed=0)
 
 
 def _local(v: np.ndarray, n: np.ndarray) -> np.ndarray:
@@ -57,12 +57,13 @@ def test_orthographic_sensor_images_points_where_K_puts_them(shape, shift):
     sensor's to_world reproduces K, R, t (measured: within 0.05 px at 64 spp, 0.015 px at 1024: sampling noise;
     bound 0.5 px), non-square images and an off-centre principal point included."""
     import mitsuba as mi
-    camera = mr.orthographic_camera(shape[0], shape[1], 0.05)
+    camera = mitsuba_relief.orthographic_camera(shape[0], shape[1], 0.05)
     camera["K"][0][2] += shift[0]
     camera["K"][1][2] += shift[1]
     s = camera["K"][0][0]
     for x, y in ((0.011, -0.004), (-0.015, 0.008)):
-        scene = {"type": "scene", "integrator": {"type": "direct"}, "sensor": mr.sensor_dict(camera, spp=256),
+        scene = {"type": "scene", "integrator": {"type": "direct"},
+                 "sensor": mitsuba_relief.sensor_dict(camera, spp=256),
                  "dot": {"type": "disk", "to_world": mi.ScalarTransform4f().translate([x, y, 0.0])
                          @ mi.ScalarTransform4f().scale([1.5 / s, 1.5 / s, 1.0]),
                          "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [1.0, 1.0, 1.0]}}}}
@@ -70,7 +71,7 @@ def test_orthographic_sensor_images_points_where_K_puts_them(shape, shift):
         assert image.shape == (shape[1], shape[0])
         rows, cols = np.mgrid[0:image.shape[0], 0:image.shape[1]]
         found = np.array([(image * cols).sum(), (image * rows).sum()]) / image.sum()
-        expected = manifest_io._camera(camera).project(np.array([x, y, 0.0]))
+        expected = manifest._camera(camera).project(np.array([x, y, 0.0]))
         assert np.allclose(expected, [s * x + camera["K"][0][2], -s * y + camera["K"][1][2]])
         assert np.hypot(*(found - expected)) < 0.5
         assert np.hypot(*(found - expected)) < 0.1      # the mapping is exact, not just within half a pixel
@@ -83,13 +84,14 @@ def test_normal_map_normals_are_world_normals(tmp_path, axis):
     """A constant normal tilted 30 deg towards +x (or +y) makes the light from that side brighter than the one
     opposite, each pixel matching (kd / pi)(n.l) E to 1 % (measured 1e-7: the render is noiseless), with an
     RGB irradiance: the map's tangent frame is the plane's x, y, z."""
-    camera = mr.orthographic_camera(16, 12, 0.05)
+    camera = mitsuba_relief.orthographic_camera(16, 12, 0.05)
     n = np.zeros(3)
     n[axis], n[2] = np.sin(np.radians(30)), np.cos(np.radians(30))
-    normal_map = mr.write_normal_map(tmp_path / "n.exr", np.broadcast_to(n, (12, 16, 3)))
+    normal_map = mitsuba_relief.write_normal_map(tmp_path / "n.exr", np.broadcast_to(n, (12, 16, 3)))
     material = {"kd": KD.tolist(), "ks": 0.0, "eta": 1.5, "alpha": 0.25}
-    assert mr.material_bsdf(material)["type"] == "diffuse"
-    renderer = mr.Renderer(mr.scene_dict(camera, normal_map, mr.material_bsdf(material), spp=4))
+    assert mitsuba_relief.material_bsdf(material)["type"] == "diffuse"
+    renderer = mitsuba_relief.Renderer(mitsuba_relief.scene_dict(camera, normal_map,
+                                                                 mitsuba_relief.material_bsdf(material), spp=4))
     irradiance = np.array([2.0, 1.0, 0.5])
     seen = {}
     for sign in (1, -1):
@@ -106,12 +108,13 @@ def test_texture_rows_are_camera_rows(tmp_path):
     """A normal map tilted towards +x on its top rows only (camera order) tilts the image's top rows: the texture
     is stored bottom row first (a file in camera order would come out upside down, the relief mirrored in y)."""
     W, H = 8, 12
-    camera = mr.orthographic_camera(W, H, 0.05)
+    camera = mitsuba_relief.orthographic_camera(W, H, 0.05)
     normals = np.zeros((H, W, 3)) + [0.0, 0.0, 1.0]
     normals[:3] = [np.sin(np.radians(30)), 0.0, np.cos(np.radians(30))]
     material = {"kd": KD.tolist(), "ks": 0.0, "eta": 1.5, "alpha": 0.25}
-    renderer = mr.Renderer(mr.scene_dict(camera, mr.write_normal_map(tmp_path / "n.exr", normals),
-                                         mr.material_bsdf(material), spp=1))
+    renderer = mitsuba_relief.Renderer(mitsuba_relief.scene_dict(
+        camera, mitsuba_relief.write_normal_map(tmp_path / "n.exr", normals), mitsuba_relief.material_bsdf(material),
+        spp=1))
     towards = np.array([1.0, 0.0, 1.0]) / np.sqrt(2)
     image = renderer.render(towards, [1.0, 1.0, 1.0])
     expected = KD / np.pi * np.maximum(normals @ towards, 0)[..., None]
@@ -121,9 +124,10 @@ def test_texture_rows_are_camera_rows(tmp_path):
 def test_use_shadowing_function_is_off(tmp_path):
     """Mitsuba's default bump-terminator term (Estevez 2019) would darken tilted normals (by ~1 % at 30 deg):
     the scene switches it off, so the pixel model is plain (n.l)."""
-    camera = mr.orthographic_camera(8, 8, 0.05)
-    scene = mr.scene_dict(camera, mr.write_normal_map(tmp_path / "n.exr", np.zeros((8, 8, 3)) + [0.5, 0, 0.866]),
-                          mr.material_bsdf({"kd": KD.tolist(), "ks": 0.0, "eta": 1.5, "alpha": 0.25}), spp=1)
+    camera = mitsuba_relief.orthographic_camera(8, 8, 0.05)
+    scene = mitsuba_relief.scene_dict(
+        camera, mitsuba_relief.write_normal_map(tmp_path / "n.exr", np.zeros((8, 8, 3)) + [0.5, 0, 0.866]),
+        mitsuba_relief.material_bsdf({"kd": KD.tolist(), "ks": 0.0, "eta": 1.5, "alpha": 0.25}), spp=1)
     assert scene["sample"]["bsdf"]["use_shadowing_function"] is False
 
 
@@ -135,13 +139,13 @@ def test_every_pixel_is_eq6_in_its_normal_frame(capture):
     a delta light, v = +z everywhere) and Mitsuba's isotropic GGX is eq. 6's: measured, relative error at most
     3e-4 (float32; 1e-7 typical) where n.l > 0, absolute 6e-8 everywhere; bounds 1e-3 and 1e-6 (the brief's:
     a few %). The specular term adds 1 % to 7 % of the diffuse on the flat quadrant, more under higher lights."""
-    out, manifest = capture
-    truth = read_exr(out / manifest["truth"]["normals"])[0]
+    out, rendered = capture
+    truth = read_exr(out / rendered["truth"]["normals"])[0]
     normals = np.stack([truth[c] for c in "XYZ"], axis=-1).astype(float)
-    material = manifest["provenance"]["material"]
-    flat = mr.flat_quadrant(manifest["camera"])
+    material = rendered["provenance"]["material"]
+    flat = mitsuba_relief.flat_quadrant(rendered["camera"])
     gain = []
-    for frame in manifest["frames"]:
+    for frame in rendered["frames"]:
         towards, irradiance = np.array(frame["light"]["direction"]), frame["light"]["intensity"]
         image = read_rgb(out / frame["exposures"][0]["file"])
         model = _model(normals, towards, irradiance, material)
@@ -152,7 +156,7 @@ def test_every_pixel_is_eq6_in_its_normal_frame(capture):
         flat_diffuse = np.asarray(material["kd"]) / np.pi * towards[2] * np.asarray(irradiance)
         gain.append((image[flat] / flat_diffuse - 1).mean())
         assert np.abs(image[flat] - model[flat]).max() < 1e-6 and flat.any()
-    elevation = np.array([f["light"]["direction"][2] for f in manifest["frames"]])
+    elevation = np.array([f["light"]["direction"][2] for f in rendered["frames"]])
     assert min(gain) > 0.005 and max(gain) > 0.05                # the specular term is there ...
     assert gain[int(np.argmax(elevation))] == pytest.approx(max(gain))   # ... strongest near the view
 
@@ -160,8 +164,8 @@ def test_every_pixel_is_eq6_in_its_normal_frame(capture):
 # --- (d) the capture -----------------------------------------------------------------------------------------------
 
 def test_capture_manifest_truth_and_frames(capture):
-    out, manifest = capture
-    loaded = manifest_io.load(out)                      # schema and meaning, every frame file present
+    out, rendered = capture
+    loaded = manifest.load(out)                      # schema and meaning, every frame file present
     cam = loaded["camera"]
     W, H = SIZE
     s = W / 0.05
@@ -188,34 +192,35 @@ def test_capture_manifest_truth_and_frames(capture):
     truth = read_exr(out / "truth/normals.exr")[0]
     n = np.stack([truth[c] for c in "XYZ"], axis=-1)
     assert n.shape == (H, W, 3) and np.allclose(np.linalg.norm(n, axis=-1), 1, atol=1e-6)
-    flat = mr.flat_quadrant(cam)
+    flat = mitsuba_relief.flat_quadrant(cam)
     assert flat.mean() == 0.25 and (n[flat] == [0, 0, 1]).all()           # the flat quadrant: exactly +z
     tilt = np.degrees(np.arccos(n[..., 2]))
     assert 30 <= tilt.max() <= 35 and (tilt[~flat] > 1).mean() > 0.3       # a relief, up to ~33 deg
     kd = read_rgb(out / "truth/kd.exr")
-    assert np.allclose(kd, mr.DEFAULT_MATERIAL["kd"])
+    assert np.allclose(kd, mitsuba_relief.DEFAULT_MATERIAL["kd"])
 
 
 def test_relief_is_deterministic_and_the_map_orientation_is_the_image():
     """The relief depends on the seed only; row 0 of the normal map is the image's top row (world +y)."""
-    camera = mr.orthographic_camera(32, 32, 0.05)
-    a, b, c = mr.relief_normals(camera, 0), mr.relief_normals(camera, 0), mr.relief_normals(camera, 1)
+    camera = mitsuba_relief.orthographic_camera(32, 32, 0.05)
+    a, b, c = (mitsuba_relief.relief_normals(camera, 0), mitsuba_relief.relief_normals(camera, 0),
+               mitsuba_relief.relief_normals(camera, 1))
     assert np.array_equal(a, b) and not np.array_equal(a, c)
-    xy = mr.pixel_points(camera)
+    xy = mitsuba_relief.pixel_points(camera)
     assert xy[0, 0, 1] > 0 > xy[-1, 0, 1] and xy[0, 0, 0] < 0 < xy[0, -1, 0]
-    assert (a[mr.flat_quadrant(camera)] == [0, 0, 1]).all()
+    assert (a[mitsuba_relief.flat_quadrant(camera)] == [0, 0, 1]).all()
 
 
 def test_dome_directions():
     for count in (1, 5, 24, 48, 100):
-        d = mr.dome_directions(count)
+        d = mitsuba_relief.dome_directions(count)
         assert d.shape == (count, 3) and np.allclose(np.linalg.norm(d, axis=1), 1) and (d[:, 2] > 0).all()
-    d = mr.dome_directions(48)
+    d = mitsuba_relief.dome_directions(48)
     elevation = np.degrees(np.arcsin(d[:, 2]))
     assert len(np.unique(elevation.round(6))) == 4 and elevation.min() == pytest.approx(15)
-    assert np.array_equal(d, mr.dome_directions(48))
+    assert np.array_equal(d, mitsuba_relief.dome_directions(48))
     with pytest.raises(ValueError):
-        mr.dome_directions(0)
+        mitsuba_relief.dome_directions(0)
 
 
 def test_per_light_rgb_factors_and_kd_map(tmp_path):
@@ -225,9 +230,9 @@ def test_per_light_rgb_factors_and_kd_map(tmp_path):
     kd[:, : W // 4] *= 0.5                                  # a darker band on the left (in the flat quadrant)
     rgb = np.array([[1.0, 0.5, 2.0], [0.25, 1.0, 1.0]])
     material = {"kd": [0.5, 0.3, 0.2], "ks": 0.0, "eta": 1.5, "alpha": 0.25}
-    made = mr.render_relief(tmp_path / "c", (W, H), 2, 2, material=material, kd=kd, light_rgb=rgb)
+    made = mitsuba_relief.render_relief(tmp_path / "c", (W, H), 2, 2, material=material, kd=kd, light_rgb=rgb)
     assert np.allclose(read_rgb(tmp_path / "c/truth/kd.exr"), kd)
-    flat = mr.flat_quadrant(made["camera"])
+    flat = mitsuba_relief.flat_quadrant(made["camera"])
     for q, frame in enumerate(made["frames"]):
         assert frame["light"]["intensity"] == rgb[q].tolist()
         image = read_rgb(tmp_path / "c" / frame["exposures"][0]["file"])
@@ -236,8 +241,8 @@ def test_per_light_rgb_factors_and_kd_map(tmp_path):
 
 
 def test_cli(tmp_path):
-    assert mr.main([str(tmp_path / "cli"), "--size", "12", "--lights", "3", "--spp", "1", "--width", "0.02",
-                    "--seed", "2"]) == 0
-    loaded = manifest_io.load(tmp_path / "cli")
+    assert mitsuba_relief.main([str(tmp_path / "cli"), "--size", "12", "--lights", "3", "--spp", "1", "--width", "0.02",
+                                "--seed", "2"]) == 0
+    loaded = manifest.load(tmp_path / "cli")
     assert len(loaded["frames"]) == 3 and loaded["camera"]["K"][0][0] == pytest.approx(12 / 0.02)
     assert loaded["provenance"]["seed"] == 2

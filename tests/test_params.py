@@ -192,14 +192,14 @@ def write_standin(folder, fresnel_in_ndf="lobe"):
 
 
 def run_params(folder, **settings):
-    from facetsynth.stages import params as stage
-    stage.run(stage.Inputs(geometry=folder / "geometry.json", kd=folder / "kd.exr", specular=folder / "specular.npy",
-                           valid=folder / "valid.npy", colour=folder / "colour.npy",
-                           representatives=folder / "representatives.npy", neighbours=folder / "neighbours.npy",
-                           weights=folder / "weights.npy", ndf=folder / "ndf.npy",
-                           fresnel_cosine=folder / "fresnel_cosine.npy",
-                           synthesis_confidence=folder / "confidence.npy", grid=folder / "grid.json"),
-              stage.Outputs(svbrdf=folder / "svbrdf", metrics=folder / "metrics.json"), stage.Settings(**settings))
+    from facetsynth.stages.params import Inputs, Outputs, Settings, run
+    run(Inputs(geometry=folder / "geometry.json", kd=folder / "kd.exr", specular=folder / "specular.npy",
+               valid=folder / "valid.npy", colour=folder / "colour.npy",
+               representatives=folder / "representatives.npy", neighbours=folder / "neighbours.npy",
+               weights=folder / "weights.npy", ndf=folder / "ndf.npy",
+               fresnel_cosine=folder / "fresnel_cosine.npy",
+               synthesis_confidence=folder / "confidence.npy", grid=folder / "grid.json"),
+        Outputs(svbrdf=folder / "svbrdf", metrics=folder / "metrics.json"), Settings(**settings))
     import json
     return json.loads((folder / "metrics.json").read_text())
 
@@ -244,15 +244,15 @@ def test_params_stage_without_grazing_coverage_keeps_and_records_the_default(tmp
 def test_negative_eq18_weights_give_a_valid_model(tmp_path):
     """Eq. 18's least-squares weights may be negative; the model's mixtures must stay non-negative NDFs
     with A(k) > 0 (regression: a signed mixture gave A(k) = -0.7 and unbounded rho on wallpaper)."""
-    from facetsynth.stages import params as stage
     from facetsynth.stages.common import RectifiedCapture
+    from facetsynth.stages.params import build_model
     folder, truth = write_standin(tmp_path / "neg")
     capture = RectifiedCapture.load(folder / "geometry.json")
     table = np.load(folder / "ndf.npy").astype(float)
     nb = np.zeros((64, 3), int)
     nb[:, 1] = 1
     w = np.tile([1.9, -1.2, 0.3], (64, 1))                        # sums to 1, one weight negative
-    model, ks_pt, ks_rep = stage.build_model(table, GRID, nb, w, truth.kd, np.ones((64, 3)), capture)
+    model, ks_pt, ks_rep = build_model(table, GRID, nb, w, truth.kd, np.ones((64, 3)), capture)
     assert (model.weights >= 0).all()
     np.testing.assert_allclose(model.weights.sum(axis=1), 1.0, rtol=1e-12)
     np.testing.assert_allclose(ks_pt, np.clip((w * ks_rep[nb]).sum(1), 0, None))   # eq. 18's ks
@@ -356,7 +356,7 @@ def test_params_stage_records_eta_intervals_and_the_ndf_spread(tmp_path):
 def test_params_stage_interval_unit_sets_n_of_the_test(tmp_path):
     """Grazing samples with 2 % noise: counted per sample, per point or per representative the interval covers
     the truth, and it widens as the units get fewer (the unit changes n of the test, nothing else)."""
-    from facetsynth.stages import params as stage
+    from facetsynth.stages.params import fit_eta
     from facetsynth.svbrdf import SVBRDF
     folder, truth = write_standin(tmp_path / "lobe")
     run_params(folder)
@@ -370,8 +370,8 @@ def test_params_stage_interval_unit_sets_n_of_the_test(tmp_path):
     material = np.array([0, 0, 1, 1])
     widths = {}
     for unit in ("sample", "point", "representative"):
-        eta, fitted, records, eta_rep, interval_rep = stage.fit_eta(model, w18, samples, material, (1.05, 4.0), 1.5,
-                                                                    8, 0.15, 0.1, 0.2, interval_unit=unit)
+        eta, fitted, records, eta_rep, interval_rep = fit_eta(model, w18, samples, material, (1.05, 4.0), 1.5,
+                                                              8, 0.15, 0.1, 0.2, interval_unit=unit)
         for r, true_eta in zip(records, (1.35, 2.6)):
             assert r["eta_interval"][0] < true_eta < r["eta_interval"][1], unit
         widths[unit] = [r["eta_interval_width"] for r in records]
@@ -399,7 +399,7 @@ def test_ndf_spread_skips_turning_frames_and_scores_a_constant_one():
     """A polar frame is one material at many rotations (skipped, said so); a constant frame is scored, and
     a point whose NDF differs from the rest shows in the spread."""
     from facetsynth.scene import Scene
-    from facetsynth.stages import params as stage
+    from facetsynth.stages.params import ndf_spread
     scene = Scene.from_dict({"name": "two", "size": [0.1, 0.1], "regions": [
         {"name": "turned", "where": {"rect": {"x": [-0.05, 0.0], "y": [-0.05, 0.05]}}, "kd": [0.2, 0.2, 0.2],
          "ks": [0.5, 0.5, 0.5], "eta": 1.5, "alpha": [0.1, 0.3], "frame": {"polar": [0.0, 0.0]}},
@@ -409,7 +409,7 @@ def test_ndf_spread_skips_turning_frames_and_scores_a_constant_one():
     maps = scene.parameters(plane.points3d().reshape(-1, 3)[:, :2])
     model = tabulate_truth(maps, DirectionGrid(16, 64), plane)
     visible = np.ones(64, bool)
-    spread, skipped = stage.ndf_spread(model, maps, ["turned", "straight"], visible)
+    spread, skipped = ndf_spread(model, maps, ["turned", "straight"], visible)
     spread_all = spread
     assert set(spread) == {"straight"} and "turns" in skipped["turned"]
     assert spread["straight"] == {"points": 32, "median": 0.0, "p90": 0.0}
@@ -419,13 +419,13 @@ def test_ndf_spread_skips_turning_frames_and_scores_a_constant_one():
     odd[straight[0]] = model.neighbours[np.flatnonzero(maps.region == 0)[0]]
     changed = type(model)(**{**{f: getattr(model, f) for f in ("plane", "grid", "kd", "ks", "eta", "ndf", "area",
                                                                "weights")}, "neighbours": odd})
-    spread, _ = stage.ndf_spread(changed, maps, ["turned", "straight"], visible, max_points=8)
+    spread, _ = ndf_spread(changed, maps, ["turned", "straight"], visible, max_points=8)
     assert spread["straight"]["points"] == 8 and spread["straight"]["p90"] > 0.1
     # any material kind counts (a measured region has no true NDF, but its fitted NDFs still should agree)
     import dataclasses
     marked = dataclasses.replace(maps, analytic=maps.region == 0)
-    assert stage.ndf_spread(model, marked, ["turned", "straight"], visible)[0] == spread_all
-    spread, skipped = stage.ndf_spread(model, maps, ["turned", "straight"], ~(maps.region == 1))
+    assert ndf_spread(model, marked, ["turned", "straight"], visible)[0] == spread_all
+    spread, skipped = ndf_spread(model, maps, ["turned", "straight"], ~(maps.region == 1))
     assert spread == {} and "no visible point" in skipped["straight"]
 
 

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from facetsynth import cluster, microfacet, params, tables
-from facetsynth import partial_ndf as pndf
-from facetsynth import synthesis as syn
+from facetsynth import partial_ndf
+from facetsynth import synthesis
 from facetsynth.pushpull import push_pull, splat
 
 from test_grid import GRID, O, sph, upper
@@ -27,7 +27,7 @@ def test_eq11_view_in_the_plane_gives_an_empty_partial_ndf():
         view = np.array([0.0, -1.0, 0.0]) if elevation == 0 else sph(90.0 - elevation, -90.0)
         slice_ = push_pull(*splat(GRID, d, microfacet.rho(d, view, np.zeros(3), np.full(3, 0.6), 1.6, 0.2, 0.3,
                                                           0.0).mean(-1)))
-        fit = pndf.fit(slice_, full, view, GRID)
+        fit = partial_ndf.fit(slice_, full, view, GRID)
         assert np.isfinite(fit.ndf).all() and np.isfinite(fit.confidence).all() and (fit.ndf >= 0).all()
         if expect_zero:
             assert np.all(fit.ndf == 0) and fit.converged.all() and fit.iterations[0] == 1
@@ -44,11 +44,11 @@ def test_partial_ndf_of_a_very_rough_lobe():
     mean(ks) F D on W >= 0.5 within 0.35 relative L2 (measured 0.28, against 0.05-0.08 for alpha 0.1-0.3 in
     test_reflectance: S of eq. 5 from a partial NDF that misses most of a broad lobe is biased; stated)."""
     full = np.ones((1,) + GRID.shape)
-    fit = pndf.fit(analytic_slice(0.6, 1.6, 1.0, 1.0, 0.0), full, O, GRID)
+    fit = partial_ndf.fit(analytic_slice(0.6, 1.6, 1.0, 1.0, 0.0), full, O, GRID)
     assert fit.converged.all() and np.isfinite(fit.ndf).all() and (fit.ndf >= 0).all()
     true_ndf = microfacet.ndf(GRID.directions, 1.0, 1.0, 0.0)[None]
-    ref = pndf.recoverable_ndf(np.full((1, 3), 0.6), np.array([1.6]), true_ndf, O[None], GRID)
-    err = pndf.relative_l2(fit.ndf, ref, fit.confidence >= 0.5, GRID)[0]
+    ref = partial_ndf.recoverable_ndf(np.full((1, 3), 0.6), np.array([1.6]), true_ndf, O[None], GRID)
+    err = partial_ndf.relative_l2(fit.ndf, ref, fit.confidence >= 0.5, GRID)[0]
     assert err < 0.35
 
 
@@ -58,14 +58,14 @@ def test_partial_ndf_iteration_cut_short():
     it converges, and the one-step iterate is 1-10 % (relative L2) from the converged NDF."""
     full = np.ones((1,) + GRID.shape)
     slice_ = analytic_slice(0.6, 1.6, 0.2, 0.4, 0.5)
-    done = pndf.fit(slice_, full, O, GRID)
+    done = partial_ndf.fit(slice_, full, O, GRID)
     assert done.converged.all() and done.iterations[0] > 1
     for max_iter in (0, 1):
-        cut = pndf.fit(slice_, full, O, GRID, max_iter=max_iter)
+        cut = partial_ndf.fit(slice_, full, O, GRID, max_iter=max_iter)
         assert not cut.converged.any() and cut.iterations[0] == max_iter
         assert np.isfinite(cut.ndf).all() and (cut.ndf >= 0).all()
-    one = pndf.fit(slice_, full, O, GRID, max_iter=1)
-    err = pndf.relative_l2(one.ndf, done.ndf, done.confidence > 0, GRID)[0]
+    one = partial_ndf.fit(slice_, full, O, GRID, max_iter=1)
+    err = partial_ndf.relative_l2(one.ndf, done.ndf, done.confidence > 0, GRID)[0]
     assert 0.01 < err < 0.1                                  # measured 0.046
 
 
@@ -83,7 +83,7 @@ def test_float32_and_float64_runs_agree():
     peak = np.abs(slices[np.float64]).max()
     assert np.abs(slices[np.float32] - slices[np.float64]).max() < 1e-5 * peak
     full = np.ones((3,) + GRID.shape)
-    fits = {dt: pndf.fit(slices[np.float64].astype(dt), full.astype(dt), O.astype(dt), GRID) for dt in slices}
+    fits = {dt: partial_ndf.fit(slices[np.float64].astype(dt), full.astype(dt), O.astype(dt), GRID) for dt in slices}
     a, b = fits[np.float32].ndf, fits[np.float64].ndf
     assert np.isfinite(a).all() and np.abs(a - b).max() < 1e-5 * np.abs(b).max()
     # clustering and synthesis on rotated copies of one anisotropic GGX
@@ -93,11 +93,11 @@ def test_float32_and_float64_runs_agree():
     for dt in (np.float32, np.float64):
         dd, ww = pd.astype(dt), pw.astype(dt)
         km = cluster.kmeans(cluster.features(dd, ww, SGRID), dd, ww, SGRID, 4, seed=0)
-        spectra = syn.ExemplarSpectra(dd, ww, SGRID)
-        done = syn.complete(dd[0], ww[0], spectra, dd, ww, SGRID, syn.hemisphere_target(ww[0] > 0, SGRID),
-                            syn.Knobs(overlap_range=(0.5, 0.85), max_iterations=12, target_coverage=0.99,
-                                      max_relative_error=0.4, candidates_per_region=5, fill_overlap=None,
-                                      extend_rings=False), exclude=0)
+        spectra = synthesis.ExemplarSpectra(dd, ww, SGRID)
+        done = synthesis.complete(dd[0], ww[0], spectra, dd, ww, SGRID, synthesis.hemisphere_target(ww[0] > 0, SGRID),
+                                  synthesis.Knobs(overlap_range=(0.5, 0.85), max_iterations=12, target_coverage=0.99,
+                                            max_relative_error=0.4, candidates_per_region=5, fill_overlap=None,
+                                            extend_rings=False), exclude=0)
         runs[dt] = (km, done)
     (k32, c32), (k64, c64) = runs[np.float32], runs[np.float64]
     np.testing.assert_array_equal(k32.labels, k64.labels)
@@ -114,13 +114,13 @@ def test_partial_ndf_scatter_parts_join_bitwise_into_the_unsplit_run(extreme_run
     """scatter.tiles > 1 (issue 14): the parts (whole tiles of points) and their join give the unsplit
     run's partial NDFs bit for bit and the same metrics; tiles of 64 points give 4 tiles on these 256, and
     6 parts leave two empty."""
-    from facetsynth.stages import partial_ndf as st_pndf
-    monkeypatch.setattr(st_pndf, "TILE_POINTS", 64)
+    from facetsynth.stages.partial_ndf import Settings, gather, run_part, run_whole
+    monkeypatch.setattr("facetsynth.stages.partial_ndf.TILE_POINTS", 64)
     f = extreme_run
     inputs = dict(geometry=f["geometry"], slice_path=f["resample/slice"],
                   grid_path=f["resample/grid.json"])
-    settings = st_pndf.Settings(per_point_view=True)
-    st_pndf.run_whole(**inputs, ndf_out=tmp_path / "ndf", metrics_out=tmp_path / "m.json", settings=settings)
+    settings = Settings(per_point_view=True)
+    run_whole(**inputs, ndf_out=tmp_path / "ndf", metrics_out=tmp_path / "m.json", settings=settings)
     from facetsynth.stages.common import part_points
     assert [part_points(256, k, 6, 64) for k in range(6)] == [slice(0, 64), slice(64, 128), slice(128, 192),
                                                               slice(192, 256), slice(256, 256), slice(256, 256)]
@@ -129,11 +129,11 @@ def test_partial_ndf_scatter_parts_join_bitwise_into_the_unsplit_run(extreme_run
         part_points(256, 6, 6)
     parts = [tmp_path / f"part{k}" for k in range(6)]
     for k in (3, 0, 5, 1, 4, 2):                      # any order
-        st_pndf.run_part(**inputs, part=k, parts=6, ndf_out=parts[k] / "ndf", record_out=parts[k] / "record.npz",
-                         settings=settings)
+        run_part(**inputs, part=k, parts=6, ndf_out=parts[k] / "ndf", record_out=parts[k] / "record.npz",
+                 settings=settings)
     shuffled = [parts[k] for k in (2, 0, 5, 4, 1, 3)]
-    st_pndf.gather(f["geometry"], f["resample/grid.json"], [p / "ndf" for p in shuffled],
-                   [p / "record.npz" for p in shuffled], tmp_path / "joined", tmp_path / "joined.json", settings)
+    gather(f["geometry"], f["resample/grid.json"], [p / "ndf" for p in shuffled],
+           [p / "record.npz" for p in shuffled], tmp_path / "joined", tmp_path / "joined.json", settings)
     for name in ("table.json", "mask.npy", "offsets.npy", "ndf.npy", "confidence.npy"):
         assert (tmp_path / "joined" / name).read_bytes() == (tmp_path / "ndf" / name).read_bytes(), name
     assert metrics_of(tmp_path / "joined.json") == metrics_of(tmp_path / "m.json")

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from facetsynth import microfacet, partial_ndf as pndf
+from facetsynth import microfacet, partial_ndf
 from facetsynth.grid import DirectionGrid
 from facetsynth.pushpull import push_pull, splat
 from facetsynth.separation import brdf_samples, diffuse_level, specular_residual
@@ -49,11 +49,11 @@ def test_eq5_on_a_tabulated_ndf_matches_closed_form_smith(alpha_u, alpha_v, phi)
     grid = DirectionGrid(64, 256)
     table = microfacet.ndf(grid.directions, alpha_u, alpha_v, phi)[None]
     table /= grid.integrate(table * grid.directions[..., 2])[:, None, None]
-    k = pndf.SHADOWING_GRID.directions.reshape(-1, 3)
-    area = pndf.projected_area_table(table, grid, k)[0]
+    k = partial_ndf.SHADOWING_GRID.directions.reshape(-1, 3)
+    area = partial_ndf.projected_area_table(table, grid, k)[0]
     exact = microfacet.projected_area(k, alpha_u, alpha_v, phi)
     np.testing.assert_allclose(area, exact, rtol=5e-3)
-    s = pndf.shadowing_table(table, grid, constrained=False)[0].ravel()
+    s = partial_ndf.shadowing_table(table, grid, constrained=False)[0].ravel()
     np.testing.assert_allclose(s, microfacet.shadowing(k, alpha_u, alpha_v, phi), rtol=5e-3, atol=1e-3)
 
 
@@ -65,17 +65,17 @@ def analytic_slice(ks, eta, alpha_u, alpha_v, phi, view=O):
 
 def reference(ks, eta, alpha_u, alpha_v, phi):
     true_ndf = microfacet.ndf(GRID.directions, alpha_u, alpha_v, phi)[None]
-    return pndf.recoverable_ndf(np.full((1, 3), ks), np.array([eta]), true_ndf, O[None], GRID)
+    return partial_ndf.recoverable_ndf(np.full((1, 3), ks), np.array([eta]), true_ndf, O[None], GRID)
 
 
 @pytest.mark.parametrize("alpha_u, alpha_v, phi", [(0.1, 0.3, 0.0), (0.15, 0.4, 1.2), (0.25, 0.25, 0.0)])
 def test_partial_ndf_of_an_analytic_material_matches_the_truth_inside_omega(alpha_u, alpha_v, phi):
     full = np.ones((1,) + GRID.shape)
-    fit = pndf.fit(analytic_slice(0.6, 1.6, alpha_u, alpha_v, phi), full, O, GRID, constrained=True)
+    fit = partial_ndf.fit(analytic_slice(0.6, 1.6, alpha_u, alpha_v, phi), full, O, GRID, constrained=True)
     assert fit.converged.all() and np.isfinite(fit.ndf).all() and (fit.ndf >= 0).all()
     mask = fit.confidence >= 0.5
     assert mask.mean() > 0.3                                    # Omega (eq. 10) minus grazing, sizeable
-    err = pndf.relative_l2(fit.ndf, reference(0.6, 1.6, alpha_u, alpha_v, phi), mask, GRID)[0]
+    err = partial_ndf.relative_l2(fit.ndf, reference(0.6, 1.6, alpha_u, alpha_v, phi), mask, GRID)[0]
     assert err < 0.1     # measured 0.065, 0.081, 0.052: grid (32 rings) and the azimuth-min S
     outside = ~np.any(fit.confidence > 0, axis=0)
     assert np.all(fit.ndf[0][outside] == 0)                      # D = 0 outside Omega
@@ -88,8 +88,8 @@ def test_constrained_shadowing_beats_the_unconstrained_iteration():
     slice_ = analytic_slice(*args)
     errors = {}
     for constrained in (True, False):
-        fit = pndf.fit(slice_, full, O, GRID, constrained=constrained)
-        errors[constrained] = pndf.relative_l2(fit.ndf, reference(*args), fit.confidence >= 0.5, GRID)[0]
+        fit = partial_ndf.fit(slice_, full, O, GRID, constrained=constrained)
+        errors[constrained] = partial_ndf.relative_l2(fit.ndf, reference(*args), fit.confidence >= 0.5, GRID)[0]
     assert errors[True] < 0.8 * errors[False]
 
 
@@ -133,17 +133,17 @@ def test_separation_edge_cases_are_finite_and_stated():
 
 def test_partial_ndf_edge_cases_pure_diffuse_grazing_and_a_sharp_lobe():
     full = np.ones((2,) + GRID.shape)
-    zero = pndf.fit(np.zeros((2,) + GRID.shape), full, O, GRID)             # pure diffuse: zero residual
+    zero = partial_ndf.fit(np.zeros((2,) + GRID.shape), full, O, GRID)             # pure diffuse: zero residual
     assert np.all(zero.ndf == 0) and zero.converged.all()
     grazing_view = np.array([0.0, -np.sin(np.radians(89.9)), np.cos(np.radians(89.9))])
-    fit = pndf.fit(analytic_slice(0.6, 1.6, 0.1, 0.3, 0.0, grazing_view), full[:1], grazing_view, GRID)
+    fit = partial_ndf.fit(analytic_slice(0.6, 1.6, 0.1, 0.3, 0.0, grazing_view), full[:1], grazing_view, GRID)
     assert np.isfinite(fit.ndf).all() and np.isfinite(fit.confidence).all()
     # A near-mirror lobe (alpha 0.02) between sparse light samples: push-pull smears it;
     # the partial NDF stays finite and non-negative and keeps the lobe's energy within a factor 2.
     rng = np.random.default_rng(3)
     d = random_directions(rng, (1, 400))
     sharp = microfacet.rho(d, O, np.zeros(3), np.full(3, 0.6), 1.6, 0.02, 0.02, 0.0).mean(-1)
-    fit = pndf.fit(push_pull(*splat(GRID, d, sharp)), full[:1], O, GRID)
+    fit = partial_ndf.fit(push_pull(*splat(GRID, d, sharp)), full[:1], O, GRID)
     ref = reference(0.6, 1.6, 0.02, 0.02, 0.0)
     assert np.isfinite(fit.ndf).all() and (fit.ndf >= 0).all()
     cos = GRID.directions[..., 2]

@@ -40,8 +40,8 @@ import pytest
 pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install mitsuba, or the test extra): "
                                       "the independent-renderer tests need it")
 
-from facetsynth import manifest as manifest_io  # noqa: E402
-from facetsynth import mitsuba_relief as mr  # noqa: E402
+from facetsynth import manifest  # noqa: E402
+from facetsynth import mitsuba_relief  # noqa: E402
 from facetsynth.fileio import read_exr  # noqa: E402
 from facetsynth.plane import PlaneGrid  # noqa: E402
 from test_workflow import make_workdir, snakemake  # noqa: E402
@@ -60,11 +60,11 @@ def truth_on_grid(capture: Path, grid: PlaneGrid) -> np.ndarray:
     centre of every cell of ``grid``, row-major: bilinear between the four nearest pixel centres of the top-down
     orthographic camera (col = s x + (W-1)/2, row = -s y + (H-1)/2 from its K), renormalised; on a grid whose
     cells are the camera's pixels, each pixel's own normal."""
-    manifest = manifest_io.load(capture)
-    channels, _ = read_exr(Path(capture) / manifest["truth"]["normals"])
+    loaded = manifest.load(capture)
+    channels, _ = read_exr(Path(capture) / loaded["truth"]["normals"])
     truth = np.stack([channels[c] for c in "XYZ"], axis=-1).astype(float)
     H, W = truth.shape[:2]
-    K = np.asarray(manifest["camera"]["K"], float)
+    K = np.asarray(loaded["camera"]["K"], float)
     xy = grid.cell_centres().reshape(-1, 2)
     col, row = K[0, 0] * xy[:, 0] + K[0, 2], -K[1, 1] * xy[:, 1] + K[1, 2]
     c0 = np.clip(np.floor(col).astype(int), 0, W - 2)
@@ -78,7 +78,7 @@ def truth_on_grid(capture: Path, grid: PlaneGrid) -> np.ndarray:
 def _run(repo: Path, root: Path, size: int) -> dict:
     """Render the relief at ``size`` x ``size`` pixels, run the workflow up to the self-check, measure."""
     capture = root / "capture"
-    mr.render_relief(capture, (size, size), LIGHTS, SPP, seed=0)
+    mitsuba_relief.render_relief(capture, (size, size), LIGHTS, SPP, seed=0)
     workdir = make_workdir(repo, root / "wf", "", resolution=None)          # native: a grid point per pixel
     (workdir / "relief.tsv").write_text(f"sample\tsource\tpath\trig\nrelief\timport\t{capture}\t\n")
     done = snakemake(workdir, "results/relief/selfcheck/metrics.json", "--config", "samples=relief.tsv",
@@ -124,7 +124,7 @@ def test_grid_truth_sampling_is_the_pixel_normal_on_a_native_grid(tmp_path):
     """A grid whose cells are the camera pixels reads each pixel's own truth; a coarser grid's cell centre on
     a pixel centre does too (the (x, y) <-> (col, row) map of the orthographic camera, K)."""
     capture = tmp_path / "capture"
-    mr.render_relief(capture, (24, 24), 2, 1, seed=0)
+    mitsuba_relief.render_relief(capture, (24, 24), 2, 1, seed=0)
     channels, _ = read_exr(capture / "truth/normals.exr")
     truth = np.stack([channels[c] for c in "XYZ"], axis=-1).astype(float)
     width = 0.05

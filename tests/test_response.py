@@ -16,7 +16,7 @@ from facetsynth.errors import InputError
 from facetsynth.fileio import exposure_bits, read_frame, write_exr
 from facetsynth.hdr import merge_exposures
 from facetsynth.response import ResponseSettings, recover_response
-from facetsynth.stages import hdr as hdr_stage
+from facetsynth.stages import hdr
 
 TIMES = np.array([0.0125, 0.05, 0.2, 0.8])      # 4 exposures, 2 stops apart
 
@@ -186,7 +186,7 @@ def test_hdr_stage_merges_an_8bit_capture_to_the_true_radiance(tmp_path):
     truths = eight_bit_capture(tmp_path / "cap")
     assert exposure_bits(tmp_path / "cap/frames/0000_e0.png") == 8
     out = tmp_path / "hdr"
-    hdr_stage.run(hdr_stage.Inputs(capture=tmp_path / "cap"), hdr_stage.Outputs(
+    hdr.run(hdr.Inputs(capture=tmp_path / "cap"), hdr.Outputs(
         frames=out / "frames", manifest=out / "manifest.json", metrics=out / "metrics.json"))
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["exposure_bits"] == 8
@@ -214,7 +214,7 @@ def test_hdr_stage_refuses_a_capture_mixing_exr_and_8bit(tmp_path):
     (tmp_path / "cap/manifest.json").write_text(json.dumps(data))
     out = tmp_path / "hdr"
     with pytest.raises(InputError, match=r"manifest.json: exposures mix EXR .*x.exr.* and 8-bit images"):
-        hdr_stage.run(hdr_stage.Inputs(capture=tmp_path / "cap"), hdr_stage.Outputs(
+        hdr.run(hdr.Inputs(capture=tmp_path / "cap"), hdr.Outputs(
             frames=out / "frames", manifest=out / "manifest.json", metrics=out / "metrics.json"))
 
 
@@ -226,5 +226,5 @@ def test_hdr_stage_8bit_capture_with_one_exposure_is_a_clear_error(tmp_path):
     (tmp_path / "cap/manifest.json").write_text(json.dumps(data))
     out = tmp_path / "hdr"
     with pytest.raises(InputError, match=r"manifest.json: 1 exposure\(s\) at 1 distinct time"):
-        hdr_stage.run(hdr_stage.Inputs(capture=tmp_path / "cap"), hdr_stage.Outputs(
+        hdr.run(hdr.Inputs(capture=tmp_path / "cap"), hdr.Outputs(
             frames=out / "frames", manifest=out / "manifest.json", metrics=out / "metrics.json"))

@@ -33,7 +33,7 @@ import pytest
 import serial
 
 from facetsynth.rig.driver import RigController
-from facetsynth.rig.emulator import FIRMWARE_VERSION as EMULATOR_VERSION
+from facetsynth.rig import emulator
 from facetsynth.rig.emulator import PtyServer, VirtualController
 from facetsynth.rig.protocol import ErrorCode, RigError, RigInfo
 
@@ -187,7 +187,7 @@ def spawn(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[SpawnBacke
             controller = VirtualController(n_leds=N_LEDS, max_steps=MAX_STEPS, steps_per_mm=80.0)
             server = PtyServer(controller).start()
             cleanups.append(server.close)
-            return Backend(name, EMULATOR_VERSION, server.port, controller.reset)
+            return Backend(name, emulator.FIRMWARE_VERSION, server.port, controller.reset)
         if name == "firmware":
             argv = [str(request.getfixturevalue("host_firmware"))]
             env = {"FIRMWARE_STEP_US": "0", "FIRMWARE_START_STEPS": "2000", **env}

@@ -23,7 +23,7 @@ import yaml
 from test_rig_conformance import host_firmware, spawn  # noqa: F401
 from test_rig_faults import FaultProxy
 
-from facetsynth import manifest as manifest_io
+from facetsynth import manifest
 from facetsynth.cli import main
 from facetsynth.errors import InputError
 from facetsynth.fileio import write_json
@@ -108,13 +108,13 @@ def uninterrupted(tmp_path_factory) -> Path:
 
 
 def test_a_rig_capture_records_the_calibrated_lights_and_what_the_camera_saw(uninterrupted: Path) -> None:
-    manifest = manifest_io.load(uninterrupted)
+    captured = manifest.load(uninterrupted)
     vrig = VirtualRig.load(VIRTUAL_RIG)
-    assert len(manifest["frames"]) == N_FRAMES
+    assert len(captured["frames"]) == N_FRAMES
     plan = session.ScanPlan(**SCAN).frames(40)
-    assert [(f["carriage_steps"], f["led"]) for f in manifest["frames"]] == plan
+    assert [(f["carriage_steps"], f["led"]) for f in captured["frames"]] == plan
     assert plan[:2] == [(0, 0), (0, 8)] and plan[-1] == (4000, 32)
-    for frame, (steps, led) in zip(manifest["frames"], plan):
+    for frame, (steps, led) in zip(captured["frames"], plan):
         np.testing.assert_allclose(frame["light"]["position"], vrig.led_position(led, steps), atol=1e-12)
         assert [e["time"] for e in frame["exposures"]] == [0.01, 0.1, 1.0]
     # the frames are what the virtual camera renders at the state the controller reported
@@ -122,13 +122,13 @@ def test_a_rig_capture_records_the_calibrated_lights_and_what_the_camera_saw(uni
     from facetsynth.virtual_rig import VirtualCamera
     camera = VirtualCamera(SCENE, vrig, seed=3, noise=False)
     steps, led = plan[7]
-    longest = read_rgb(uninterrupted / manifest["frames"][7]["exposures"][2]["file"])
+    longest = read_rgb(uninterrupted / captured["frames"][7]["exposures"][2]["file"])
     expected = camera.render(led, steps)
     unclipped = (expected > 0.01) & (expected < 0.95)
     z = (longest - expected)[unclipped] / np.sqrt(0.001**2 + 0.0001 * expected[unclipped])   # the sensor's sigma
     assert unclipped.sum() > 10000
     assert abs(z.mean()) < 0.03 and 0.95 < z.std() < 1.1     # LED or position one off: |mean z| > 10
-    assert manifest["truth"]["scene"] == str(uninterrupted / "truth/scene.yaml")
+    assert captured["truth"]["scene"] == str(uninterrupted / "truth/scene.yaml")
     assert (uninterrupted / "journal.jsonl").is_file()        # the record of the capture stays with it
 
 
@@ -156,14 +156,14 @@ def test_faults_through_the_firmware_resume_to_the_uninterrupted_capture(
         with pytest.raises(RuntimeError, match="camera error at frame 9"):
             session.capture(rig, out, camera_factory=counting(taken, fail_at={9}))
         assert sum(taken.values()) == 9
-        manifest = session.capture(rig, out, camera_factory=counting(taken))
+        captured = session.capture(rig, out, camera_factory=counting(taken))
         assert sorted(taken.values()) == [1] * N_FRAMES                     # each frame once, none lost
         assert any(line.startswith("x ") for line in proxy.lines("reply")) and proxy.disconnects == 1
     finally:
         proxy.close()
     assert digest(out) == digest(uninterrupted)
     reference = json.loads((uninterrupted / "manifest.json").read_text())
-    assert manifest["frames"] == reference["frames"]
+    assert captured["frames"] == reference["frames"]
     assert json.loads((out / "manifest.json").read_text())["camera"] == reference["camera"]
 
 

@@ -8,7 +8,7 @@ their members' pooled samples (facetsynth.partial_ndf.pooled_fit), against analy
 import numpy as np
 import pytest
 
-from facetsynth import cluster, microfacet, partial_ndf as pndf
+from facetsynth import cluster, microfacet, partial_ndf
 from facetsynth.grid import DirectionGrid
 from facetsynth.lightplane import LightTriangulation
 from facetsynth.render import light_geometry
@@ -73,7 +73,7 @@ def test_pooled_partial_ndf_is_the_same_wherever_its_points_sit_and_beats_one_po
     sets = [np.c_[rng.uniform(-0.04, 0.04, (400, 2)), np.zeros(400)] for _ in range(2)]
     ref_view = CAMERA / np.linalg.norm(CAMERA)
     true_ndf = microfacet.ndf(GRID.directions, 0.12, 0.12)[None]
-    reference = pndf.recoverable_ndf(np.full((1, 3), 0.8), np.array([1.5]), true_ndf, ref_view[None], GRID)
+    reference = partial_ndf.recoverable_ndf(np.full((1, 3), 0.8), np.array([1.5]), true_ndf, ref_view[None], GRID)
     tri = LightTriangulation.from_lights(lights)
     pooled, single = [], []
     for points in sets:
@@ -81,17 +81,17 @@ def test_pooled_partial_ndf_is_the_same_wherever_its_points_sit_and_beats_one_po
         ok = np.ones(rho.shape, bool)
         # each point's own partial NDF (light-plane slice, as the resample stage makes it)
         value, defined = tri.interpolate(rho[:8], ok[:8], points[:8], GRID.directions.reshape(-1, 3))
-        own = pndf.fit(value.reshape((-1,) + GRID.shape), defined.reshape((-1,) + GRID.shape).astype(float),
-                       views[:8], GRID)
-        single.append(pndf.relative_l2(own.ndf, np.broadcast_to(reference, own.ndf.shape), own.confidence >= 0.5,
-                                       GRID))
+        own = partial_ndf.fit(value.reshape((-1,) + GRID.shape), defined.reshape((-1,) + GRID.shape).astype(float),
+                              views[:8], GRID)
+        single.append(partial_ndf.relative_l2(own.ndf, np.broadcast_to(reference, own.ndf.shape), own.confidence >= 0.5,
+                                              GRID))
         wi, _ = light_geometry(points[:, None], lights[None])
-        fit = pndf.pooled_fit(rho, ok, wi, views, own.confidence[:1].repeat(len(points), 0), ref_view, GRID)
+        fit = partial_ndf.pooled_fit(rho, ok, wi, views, own.confidence[:1].repeat(len(points), 0), ref_view, GRID)
         assert fit.converged.all() and np.isfinite(fit.ndf).all() and (fit.ndf >= 0).all()
         pooled.append(fit)
     mask = (pooled[0].confidence >= 0.5) & (pooled[1].confidence >= 0.5)
-    errors = [pndf.relative_l2(f.ndf, reference, mask, GRID)[0] for f in pooled]
-    between = pndf.relative_l2(pooled[0].ndf, pooled[1].ndf, mask, GRID)[0]
+    errors = [partial_ndf.relative_l2(f.ndf, reference, mask, GRID)[0] for f in pooled]
+    between = partial_ndf.relative_l2(pooled[0].ndf, pooled[1].ndf, mask, GRID)[0]
     assert max(errors) < 0.1
     assert between < 0.1
     assert np.median(np.concatenate(single)) > 2.5 * max(errors)
@@ -133,18 +133,18 @@ def test_clipped_shadowing_is_at_most_one_and_beats_the_constrained_minimum_on_b
     clipped 0.043 / 0.039 / 0.117 (relative L2 over W >= 0.5); on narrow lobes both are within 0.005."""
     grid, o = GRID, np.array([0.0, -0.8, 0.6])
     rho = microfacet.rho(grid.directions, o, np.zeros(3), np.full(3, 0.6), 1.6, *lobe).mean(axis=-1)[None]
-    reference = pndf.recoverable_ndf(np.full((1, 3), 0.6), np.array([1.6]),
-                                     microfacet.ndf(grid.directions, *lobe)[None], o[None], grid)
+    reference = partial_ndf.recoverable_ndf(np.full((1, 3), 0.6), np.array([1.6]),
+                                            microfacet.ndf(grid.directions, *lobe)[None], o[None], grid)
     full = np.ones((1,) + grid.shape)
     err = {}
     for method in ("constrained", "clipped"):
-        fit = pndf.fit(rho, full, o, grid, method)
-        err[method] = pndf.relative_l2(fit.ndf, reference, fit.confidence >= 0.5, grid)[0]
+        fit = partial_ndf.fit(rho, full, o, grid, method)
+        err[method] = partial_ndf.relative_l2(fit.ndf, reference, fit.confidence >= 0.5, grid)[0]
         if method == "clipped":
-            assert pndf.shadowing_table(fit.ndf, grid, "clipped").max() <= 1.0
+            assert partial_ndf.shadowing_table(fit.ndf, grid, "clipped").max() <= 1.0
     assert err["clipped"] < 0.8 * err["constrained"]
     with pytest.raises(ValueError, match="shadowing must be one of"):
-        pndf.shadowing_table(full, grid, "bogus")
+        partial_ndf.shadowing_table(full, grid, "bogus")
 
 
 def test_relative_rotation_finds_the_turn_of_an_anisotropic_lobe_and_pooling_undoes_it():
@@ -165,17 +165,18 @@ def test_relative_rotation_finds_the_turn_of_an_anisotropic_lobe_and_pooling_und
     grid = DirectionGrid(32, 128)
     tri = LightTriangulation.from_lights(lights)
     value, defined = tri.interpolate(rho, np.ones(rho.shape, bool), points, grid.directions.reshape(-1, 3))
-    own = pndf.fit(value.reshape((-1,) + grid.shape), defined.reshape((-1,) + grid.shape).astype(float), views, grid)
+    own = partial_ndf.fit(value.reshape((-1,) + grid.shape), defined.reshape((-1,) + grid.shape).astype(float),
+                          views, grid)
     phi, gain = cluster.relative_rotation(own.ndf, own.confidence, own.ndf[0], own.confidence[0], grid)
     assert np.median(gain[1:]) < 0.5 and gain[0] == pytest.approx(1.0)
     # D_x(h) = D_ref(R(phi) h): a frame turned by +t is the reference seen turned by -t
     assert np.median(np.abs(phi + turns)) < np.radians(1.0)
-    reference = pndf.recoverable_ndf(np.full((1, 3), 0.8), np.array([1.5]),
-                                     microfacet.ndf(grid.directions, 0.06, 0.3, 0.0)[None], views[:1], grid)
+    reference = partial_ndf.recoverable_ndf(np.full((1, 3), 0.8), np.array([1.5]),
+                                            microfacet.ndf(grid.directions, 0.06, 0.3, 0.0)[None], views[:1], grid)
     args = (rho, np.ones(rho.shape, bool), wi, views, own.confidence, views[0], grid)
-    undone = pndf.pooled_fit(*args, rotation=phi)
-    blurred = pndf.pooled_fit(*args)
+    undone = partial_ndf.pooled_fit(*args, rotation=phi)
+    blurred = partial_ndf.pooled_fit(*args)
     mask = undone.confidence >= 0.5
-    err_undone = pndf.relative_l2(undone.ndf, reference, mask, grid)[0]
-    err_blurred = pndf.relative_l2(blurred.ndf, reference, mask, grid)[0]
+    err_undone = partial_ndf.relative_l2(undone.ndf, reference, mask, grid)[0]
+    err_blurred = partial_ndf.relative_l2(blurred.ndf, reference, mask, grid)[0]
     assert err_undone < 0.12 and err_blurred > 3 * err_undone

@@ -23,8 +23,7 @@ def run_per_point_stages(root: Path, geometry: Path, n_theta: int = 32,
     """separate -> resample -> partial_ndf -> cluster -> synthesize -> params, in-process, into ``root``;
     the direction grid has ``n_theta`` rings (a resample stage that chooses its grid from the data is
     pinned to it)."""
-    from facetsynth.stages import cluster as st_cluster, params as st_params, partial_ndf as st_pndf
-    from facetsynth.stages import resample as st_resample, separate as st_separate, synthesize as st_synth
+    from facetsynth.stages import cluster, params, partial_ndf, resample, separate, synthesize
     f = {"geometry": geometry}
     for stage, names in {"separate": ("kd.exr", "specular.npy", "valid.npy", "metrics.json"),
                          "resample": ("slice", "specular_colour.npy", "grid.json",
@@ -38,41 +37,41 @@ def run_per_point_stages(root: Path, geometry: Path, n_theta: int = 32,
         for n in names:
             f[f"{stage}/{n}"] = root / stage / n
     f["svbrdf"] = root / "svbrdf"
-    st_separate.run(st_separate.Inputs(geometry=geometry),
-                    st_separate.Outputs(kd=f["separate/kd.exr"], specular=f["separate/specular.npy"],
-                                        valid=f["separate/valid.npy"], metrics=f["separate/metrics.json"]),
-                    st_separate.Settings(heldout_every=0))
-    st_resample.run_whole(geometry=geometry, specular=f["separate/specular.npy"], valid=f["separate/valid.npy"],
+    separate.run(separate.Inputs(geometry=geometry),
+                 separate.Outputs(kd=f["separate/kd.exr"], specular=f["separate/specular.npy"],
+                                     valid=f["separate/valid.npy"], metrics=f["separate/metrics.json"]),
+                 separate.Settings(heldout_every=0))
+    resample.run_whole(geometry=geometry, specular=f["separate/specular.npy"], valid=f["separate/valid.npy"],
          slice_out=f["resample/slice"],
          colour_out=f["resample/specular_colour.npy"], grid_out=f["resample/grid.json"],
-         metrics_out=f["resample/metrics.json"], settings=st_resample.Settings(n_theta_range=(n_theta, n_theta)))
-    st_pndf.run_whole(geometry=geometry, slice_path=f["resample/slice"],
+         metrics_out=f["resample/metrics.json"], settings=resample.Settings(n_theta_range=(n_theta, n_theta)))
+    partial_ndf.run_whole(geometry=geometry, slice_path=f["resample/slice"],
          grid_path=f["resample/grid.json"], ndf_out=f["partial_ndf/ndf"],
          metrics_out=f["partial_ndf/metrics.json"],
-         settings=st_pndf.Settings(per_point_view=True))
-    st_cluster.run(st_cluster.Inputs(geometry=geometry, ndf=f["partial_ndf/ndf"],
+         settings=partial_ndf.Settings(per_point_view=True))
+    cluster.run(cluster.Inputs(geometry=geometry, ndf=f["partial_ndf/ndf"],
          grid=f["resample/grid.json"], specular=f["separate/specular.npy"], valid=f["separate/valid.npy"],
          kd=f["separate/kd.exr"]),
-         st_cluster.Outputs(labels=f["cluster/labels.npy"],
+         cluster.Outputs(labels=f["cluster/labels.npy"],
          representatives=f["cluster/representatives.npy"], neighbours=f["cluster/neighbours.npy"],
          weights=f["cluster/weights.npy"], rep_ndf=f["cluster/representative_ndf.npy"],
          rep_confidence=f["cluster/representative_confidence.npy"], rotation=f["cluster/rotation.npy"],
          metrics=f["cluster/metrics.json"]),
-         st_cluster.Settings(min_representatives=min_representatives, n_init=1))
-    st_synth.run(st_synth.Inputs(geometry=geometry, ndf=f["partial_ndf/ndf"],
+         cluster.Settings(min_representatives=min_representatives, n_init=1))
+    synthesize.run(synthesize.Inputs(geometry=geometry, ndf=f["partial_ndf/ndf"],
          grid=f["resample/grid.json"], representatives=f["cluster/representatives.npy"],
          neighbours=f["cluster/neighbours.npy"], weights=f["cluster/weights.npy"],
          rep_ndf=f["cluster/representative_ndf.npy"], rep_confidence=f["cluster/representative_confidence.npy"]),
-         st_synth.Outputs(ndf=f["synthesize/ndf.npy"], confidence=f["synthesize/confidence.npy"],
+         synthesize.Outputs(ndf=f["synthesize/ndf.npy"], confidence=f["synthesize/confidence.npy"],
          fresnel_cosine=f["synthesize/cosine.npy"], grid=f["synthesize/grid.json"],
          metrics=f["synthesize/metrics.json"]))
-    st_params.run(st_params.Inputs(geometry=geometry, kd=f["separate/kd.exr"], specular=f["separate/specular.npy"],
+    params.run(params.Inputs(geometry=geometry, kd=f["separate/kd.exr"], specular=f["separate/specular.npy"],
          valid=f["separate/valid.npy"], colour=f["resample/specular_colour.npy"],
          representatives=f["cluster/representatives.npy"], neighbours=f["cluster/neighbours.npy"],
          weights=f["cluster/weights.npy"], ndf=f["synthesize/ndf.npy"], fresnel_cosine=f["synthesize/cosine.npy"],
          synthesis_confidence=f["synthesize/confidence.npy"],
          grid=f["synthesize/grid.json"], rotation=f["cluster/rotation.npy"]),
-         st_params.Outputs(svbrdf=f["svbrdf"], metrics=f["params/metrics.json"]))
+         params.Outputs(svbrdf=f["svbrdf"], metrics=f["params/metrics.json"]))
     return f
 
 

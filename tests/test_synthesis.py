@@ -10,8 +10,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from facetsynth import cluster, microfacet
-from facetsynth import synthesis as syn
+from facetsynth import microfacet
+from facetsynth import synthesis
+from facetsynth.cluster import constrained_least_squares, features, interpolation_weights, kmeans
 from facetsynth.grid import DirectionGrid
 from facetsynth.plane import PlaneGrid
 
@@ -21,8 +22,8 @@ GRID = DirectionGrid(16, 64)
 ALPHA = (0.15, 0.4)
 # the knobs these tests were measured with (synthesis.complete's former defaults; the stage's Settings stops at
 # target_coverage 0.96): sec. 5.2's 50-85 % overlap, the paper's rule only
-KNOBS = syn.Knobs(overlap_range=(0.5, 0.85), max_iterations=12, target_coverage=0.99, max_relative_error=0.4,
-                  candidates_per_region=5, fill_overlap=None, extend_rings=False)
+KNOBS = synthesis.Knobs(overlap_range=(0.5, 0.85), max_iterations=12, target_coverage=0.99, max_relative_error=0.4,
+                        candidates_per_region=5, fill_overlap=None, extend_rings=False)
 ANN = {"buckets": 32, "seed": 0, "n_neighbors": 30, "epsilon": 0.2}   # config synthesize's (and seed)
 
 
@@ -62,21 +63,22 @@ def rel_l2(a, b, mask=None, grid=GRID):
 def test_distance_is_zero_for_self_scale_invariant_and_symmetric():
     d, w = partial([0.3, 1.2])
     w = w * np.linspace(0.2, 1.0, GRID.n_phi)            # non-uniform confidence
-    same = syn.distance(d[0], w[0], d[0], w[0], GRID)
+    same = synthesis.distance(d[0], w[0], d[0], w[0], GRID)
     assert same.distance == pytest.approx(0.0, abs=1e-15) and same.relative == pytest.approx(0.0, abs=1e-7)
-    ab = syn.distance(d[0], w[0], d[1], w[1], GRID).distance
+    ab = synthesis.distance(d[0], w[0], d[1], w[1], GRID).distance
     assert ab > 0
-    assert syn.distance(7.5 * d[0], w[0], 0.02 * d[1], w[1], GRID).distance == pytest.approx(ab, rel=1e-12)  # s1, s2
-    assert syn.distance(d[1], w[1], d[0], w[0], GRID).distance == pytest.approx(ab, rel=1e-12)
+    assert (synthesis.distance(7.5 * d[0], w[0], 0.02 * d[1], w[1], GRID).distance   # s1, s2
+            == pytest.approx(ab, rel=1e-12))
+    assert synthesis.distance(d[1], w[1], d[0], w[0], GRID).distance == pytest.approx(ab, rel=1e-12)
     # the matrix form (clustering) and the FFT form (every rotation) agree with the direct one
-    pair = syn.pairwise_distance(d, w, d, w, GRID)
+    pair = synthesis.pairwise_distance(d, w, d, w, GRID)
     assert pair[0, 1] == pytest.approx(ab, rel=1e-9) and pair[1, 0] == pytest.approx(ab, rel=1e-9)
     assert abs(pair[0, 0]) < 1e-9 * ab
-    spectra = syn.ExemplarSpectra(d, w, GRID)
+    spectra = synthesis.ExemplarSpectra(d, w, GRID)
     match, frac = spectra.scores(d[0], w[0])
     for k in (0, 5, 17):
-        dk, wk = syn.rotate_tuple(d[1], w[1], GRID, k)
-        direct = syn.distance(d[0], w[0], dk, wk, GRID)
+        dk, wk = synthesis.rotate_tuple(d[1], w[1], GRID, k)
+        direct = synthesis.distance(d[0], w[0], dk, wk, GRID)
         assert match.distance[1, k] == pytest.approx(float(direct.distance), rel=1e-4)
         assert frac[1, k] == pytest.approx(float(direct.overlap / np.sum((wk > 0) * GRID.solid_angles)), abs=1e-5)
 
@@ -84,19 +86,20 @@ def test_distance_is_zero_for_self_scale_invariant_and_symmetric():
 def test_empty_overlap_gives_an_infinite_distance_and_no_nan():
     d, w = partial([0.0, 0.0])
     w2 = np.zeros_like(w[1])
-    m = syn.distance(d[0], w[0], d[1], w2, GRID)
+    m = synthesis.distance(d[0], w[0], d[1], w2, GRID)
     assert np.isinf(m.distance) and m.s2 == 0 and m.weight == 0
-    zero = syn.distance(d[0], w[0], np.zeros_like(d[1]), w[1], GRID)       # s2 = 0: all-zero NDF on the overlap
+    zero = synthesis.distance(d[0], w[0], np.zeros_like(d[1]), w[1], GRID)       # s2 = 0: all-zero NDF on the overlap
     assert np.isinf(zero.distance)
-    assert np.isinf(syn.pairwise_distance(d[:1], w[:1], d[1:], w2[None], GRID)).all()
-    spectra = syn.ExemplarSpectra(np.stack([d[1]]), np.stack([w2]), GRID)
+    assert np.isinf(synthesis.pairwise_distance(d[:1], w[:1], d[1:], w2[None], GRID)).all()
+    spectra = synthesis.ExemplarSpectra(np.stack([d[1]]), np.stack([w2]), GRID)
     match, frac = spectra.scores(d[0], w[0])
     assert np.isinf(match.distance).all() and np.all(frac == 0) and not np.isnan(match.distance).any()
     # synthesis with nothing to merge keeps the partial NDF, finite, and says it covered nothing new
-    done = syn.complete(d[0], w[0], spectra, d[1:], w2[None], GRID, syn.hemisphere_target(w[0] > 0, GRID), KNOBS)
+    done = synthesis.complete(d[0], w[0], spectra, d[1:], w2[None], GRID, synthesis.hemisphere_target(w[0] > 0, GRID),
+                              KNOBS)
     assert done.iterations == 0 and np.isfinite(done.ndf).all() and (done.ndf >= 0).all()
-    empty = syn.complete(np.zeros_like(d[0]), np.zeros_like(w[0]), spectra, d[1:], w2[None], GRID,
-                         syn.hemisphere_target(w[0] > 0, GRID), KNOBS)
+    empty = synthesis.complete(np.zeros_like(d[0]), np.zeros_like(w[0]), spectra, d[1:], w2[None], GRID,
+                               synthesis.hemisphere_target(w[0] > 0, GRID), KNOBS)
     assert empty.coverage == 0 and np.all(empty.ndf == 0)
 
 
@@ -109,12 +112,12 @@ def test_a_partial_ndf_and_its_rotated_copy_are_each_others_best_match(turn_deg)
     db, wb = partial([0.4 + np.radians(turn_deg)], scale=0.3)
     dx, wx = partial(rng.uniform(0, 2 * np.pi, 6), alpha=(0.3, 0.3))
     d, w = np.concatenate([da, db, dx]), np.concatenate([wa, wb, wx])
-    spectra = syn.ExemplarSpectra(d, w, GRID)
-    target = syn.hemisphere_target(wa[0] > 0, GRID)
+    spectra = synthesis.ExemplarSpectra(d, w, GRID)
+    target = synthesis.hemisphere_target(wa[0] > 0, GRID)
     step = np.degrees(GRID.d_phi)
     for query, other, sign in ((0, 1, +1), (1, 0, -1)):
-        done = syn.complete(d[query], w[query], spectra, d, w, GRID, target, replace(KNOBS, max_iterations=1),
-                            exclude=query)
+        done = synthesis.complete(d[query], w[query], spectra, d, w, GRID, target, replace(KNOBS, max_iterations=1),
+                                  exclude=query)
         first = done.merges[0]
         assert first["exemplar"] == other and first["merged"]
         # D_b(R(phi) h) = D_a(h) for phi = turn: the shift is turn / d_phi sectors (a: -turn)
@@ -130,14 +133,14 @@ def test_histogram_keys_find_the_rotated_copy_with_brute_force_search():
     dx, wx = partial(np.linspace(0, 2 * np.pi, 8, endpoint=False), alpha=(0.35, 0.35))
     d, w = np.concatenate([da, db, dx]), np.concatenate([wa, wb, wx])
     mask = wa[0] > 0
-    shifts = syn.region_shifts(mask, GRID, 20, 0.5, 0.85)
+    shifts = synthesis.region_shifts(mask, GRID, 20, 0.5, 0.85)
     assert shifts.size == 20 and shifts.min() >= 1
-    search = syn.HistogramSearch(d, mask, GRID, shifts, **ANN, exact=True)
+    search = synthesis.HistogramSearch(d, mask, GRID, shifts, **ANN, exact=True)
     assert len(search.regions) == 2 * len(search.shifts)
-    spectra = syn.ExemplarSpectra(d, w, GRID)
-    target = syn.hemisphere_target(mask, GRID)
-    done = syn.complete(d[0], w[0], spectra, d, w, GRID, target, replace(KNOBS, max_iterations=1), search=search,
-                        exclude=0)
+    spectra = synthesis.ExemplarSpectra(d, w, GRID)
+    target = synthesis.hemisphere_target(mask, GRID)
+    done = synthesis.complete(d[0], w[0], spectra, d, w, GRID, target, replace(KNOBS, max_iterations=1), search=search,
+                              exclude=0)
     first = done.merges[0]
     assert first["exemplar"] == 1
     assert abs(first["shift"] * np.degrees(GRID.d_phi) - 50.0) <= np.degrees(GRID.d_phi)
@@ -149,7 +152,7 @@ def test_merge_follows_eqs_16_and_17():
     w = np.array([[1.0, 0.5, 0.0]])
     dc = np.array([[9.0, 4.0, 6.0]])
     wc = np.array([[0.0, 0.5, 1.0]])
-    merged, wm = syn.merge(d, w, dc, wc, ratio=0.5)
+    merged, wm = synthesis.merge(d, w, dc, wc, ratio=0.5)
     np.testing.assert_allclose(merged, [[2.0, (0.5 * 1 + 0.5 * 0.5 * 4) / 1.0, 3.0]])
     np.testing.assert_allclose(wm, [[1.0, 0.5, 1.0]])
 
@@ -166,9 +169,9 @@ def test_synthesis_completes_an_anisotropic_ggx_from_rotated_partial_copies(opti
     scale = np.random.default_rng(0).uniform(0.3, 1.0, 64)
     d, w = partial(frames, scale=scale)
     mask = w[0] > 0
-    target = syn.hemisphere_target(mask, GRID)
-    spectra = syn.ExemplarSpectra(d, w, GRID)
-    done = syn.complete(d[0], w[0], spectra, d, w, GRID, target, replace(KNOBS, **options), exclude=0)
+    target = synthesis.hemisphere_target(mask, GRID)
+    spectra = synthesis.ExemplarSpectra(d, w, GRID)
+    done = synthesis.complete(d[0], w[0], spectra, d, w, GRID, target, replace(KNOBS, **options), exclude=0)
     truth = ggx_table(frames[0])[0]
     cos = GRID.directions[..., 2]
 
@@ -198,15 +201,15 @@ def test_synthesis_carries_the_cosine_of_the_fresnel_factor_each_cell_holds():
     d, w = partial(frames)
     o = np.array([0.0, np.sin(np.radians(50.0)), np.cos(np.radians(50.0))])
     views = np.tile(o, (64, 1))
-    target = syn.hemisphere_target(w[0] > 0, GRID)
-    done = syn.complete(d[0], w[0], syn.ExemplarSpectra(d, w, GRID), d, w, GRID, target,
-                        replace(KNOBS, max_iterations=1, refine=False), exclude=0, view=o, exemplars_view=views)
+    target = synthesis.hemisphere_target(w[0] > 0, GRID)
+    done = synthesis.complete(d[0], w[0], synthesis.ExemplarSpectra(d, w, GRID), d, w, GRID, target,
+                              replace(KNOBS, max_iterations=1, refine=False), exclude=0, view=o, exemplars_view=views)
     (merge,) = done.merges
     phi = merge["shift"] * GRID.d_phi
     rz = np.array([[np.cos(phi), -np.sin(phi), 0.0], [np.sin(phi), np.cos(phi), 0.0], [0.0, 0.0, 1.0]])
     h = GRID.directions
     own, theirs = np.abs(h @ o), np.abs((h @ rz.T) @ o)
-    _, wc = syn.rotate_tuple(d[merge["exemplar"]], w[merge["exemplar"]], GRID, merge["shift"])
+    _, wc = synthesis.rotate_tuple(d[merge["exemplar"]], w[merge["exemplar"]], GRID, merge["shift"])
     only_own, only_theirs, both = (w[0] > 0) & (wc == 0), (w[0] == 0) & (wc > 0), (w[0] > 0) & (wc > 0)
     assert only_own.sum() > 20 and only_theirs.sum() > 20 and both.sum() > 20
     np.testing.assert_allclose(done.fresnel_cosine[only_own], own[only_own], atol=1e-9)
@@ -219,9 +222,9 @@ def test_synthesis_carries_the_cosine_of_the_fresnel_factor_each_cell_holds():
 def test_one_frame_everywhere_is_reported_not_invented():
     """brushed: every point has the same frame, so no rotated exemplar matches; synthesis stalls."""
     d, w = partial(np.full(32, 0.52), scale=np.linspace(0.5, 1.0, 32), alpha=(0.05, 0.3))
-    target = syn.hemisphere_target(w[0] > 0, GRID)
-    spectra = syn.ExemplarSpectra(d, w, GRID)
-    done = syn.complete(d[0], w[0], spectra, d, w, GRID, target, KNOBS, exclude=0)
+    target = synthesis.hemisphere_target(w[0] > 0, GRID)
+    spectra = synthesis.ExemplarSpectra(d, w, GRID)
+    done = synthesis.complete(d[0], w[0], spectra, d, w, GRID, target, KNOBS, exclude=0)
     assert done.stalled
     assert done.merges[-1]["merged"] is False and done.merges[-1]["relative_error"] > 0.4
     # the only true matches are the half turn (GGX is symmetric under R(pi)): nothing else is merged
@@ -241,29 +244,30 @@ def test_orientation_concentration_tells_one_lobe_axis_from_rotated_ones():
     one, w1 = partial(np.full(24, 0.52), scale=np.linspace(0.5, 1.0, 24))
     spread, w2 = partial(np.linspace(0.0, np.pi, 24, endpoint=False))
     weave, w3 = partial(np.repeat([0.2, 0.2 + np.pi / 2], 12))
-    assert syn.orientation_concentration(syn.orientation(one, w1, GRID)) == pytest.approx(1.0, abs=1e-9)
-    assert syn.orientation_concentration(syn.orientation(spread, w2, GRID)) < 0.5 * syn.SINGLE_ORIENTATION
-    assert syn.orientation_concentration(syn.orientation(weave, w3, GRID)) < 0.5 * syn.SINGLE_ORIENTATION
-    z = syn.orientation(spread, w2, GRID)
+    assert synthesis.orientation_concentration(synthesis.orientation(one, w1, GRID)) == pytest.approx(1.0, abs=1e-9)
+    single = synthesis.SINGLE_ORIENTATION
+    assert synthesis.orientation_concentration(synthesis.orientation(spread, w2, GRID)) < 0.5 * single
+    assert synthesis.orientation_concentration(synthesis.orientation(weave, w3, GRID)) < 0.5 * single
+    z = synthesis.orientation(spread, w2, GRID)
     turn = np.angle(np.roll(z, -1) / z)                   # frames 7.5 deg apart round a half turn: 2 psi winds
     assert np.degrees(turn.sum()) == pytest.approx(360.0, abs=1e-6) and np.abs(turn).max() < np.pi / 3  # once
 
     iso, wi = partial([0.0], alpha=(0.3, 0.3))
-    assert abs(syn.orientation(iso, wi, GRID)[0]) < 1e-3 * abs(syn.orientation(one, w1, GRID)[0])
-    assert np.isnan(syn.orientation_concentration(np.zeros(3, complex)))
+    assert abs(synthesis.orientation(iso, wi, GRID)[0]) < 1e-3 * abs(synthesis.orientation(one, w1, GRID)[0])
+    assert np.isnan(synthesis.orientation_concentration(np.zeros(3, complex)))
 
 
 # ---------------------------------------------------------------------------- clustering and eq. 18
 def test_weights_sum_to_one_and_reproduce_representatives():
     frames = np.linspace(0, np.pi, 40)
     d, w = partial(frames, scale=np.linspace(0.5, 1.0, 40))
-    feats = cluster.features(d, w, GRID)
-    result = cluster.kmeans(feats, d, w, GRID, 6, seed=0)
+    feats = features(d, w, GRID)
+    result = kmeans(feats, d, w, GRID, 6, seed=0)
     reps = result.representatives
     assert len(reps) == 6 and len(np.unique(reps)) == 6
     assert all(result.labels[r] == i for i, r in enumerate(reps))
-    nbr, wts, lam = cluster.interpolation_weights(d, w, d[reps], w[reps], GRID, k=16, rep_rows=reps,
-                                                  rows=np.arange(len(d)))
+    nbr, wts, lam = interpolation_weights(d, w, d[reps], w[reps], GRID, k=16, rep_rows=reps,
+                                          rows=np.arange(len(d)))
     assert nbr.shape == (40, 16) and wts.dtype == np.float32 and lam > 0
     np.testing.assert_allclose(wts.sum(axis=1), 1.0, atol=1e-6)
     for j, r in enumerate(reps):                         # a representative is itself, weight 1
@@ -271,26 +275,26 @@ def test_weights_sum_to_one_and_reproduce_representatives():
     assert np.all(nbr < len(reps)) and np.all(wts[:, 6:] == 0)   # padding: weight 0
     # the least squares of eq. 18 (no ridge) reproduces a representative exactly
     a = d[reps].reshape(6, -1).T
-    np.testing.assert_allclose(cluster.constrained_least_squares(a, a[:, 2]), np.eye(6)[2], atol=1e-8)
+    np.testing.assert_allclose(constrained_least_squares(a, a[:, 2]), np.eye(6)[2], atol=1e-8)
     # a point halfway between two representatives' NDFs is found as that mix
     mix = 0.3 * d[reps[1]] + 0.7 * d[reps[4]]
-    n2, w2, _ = cluster.interpolation_weights(mix[None], w[:1], d[reps], w[reps], GRID, k=16, ridge=0.0,
-                                              radius=1e9)
+    n2, w2, _ = interpolation_weights(mix[None], w[:1], d[reps], w[reps], GRID, k=16, ridge=0.0,
+                                      radius=1e9)
     got = np.bincount(n2[0], weights=w2[0], minlength=len(reps))     # padding repeats an index with weight 0
     np.testing.assert_allclose(got, 0.3 * np.eye(6)[1] + 0.7 * np.eye(6)[4], atol=1e-5)
 
 
 def test_degenerate_kmeans_on_identical_ndfs():
     d, w = partial(np.full(20, 0.3))
-    feats = cluster.features(d, w, GRID)
-    result = cluster.kmeans(feats, d, w, GRID, 5, seed=0)
+    feats = features(d, w, GRID)
+    result = kmeans(feats, d, w, GRID, 5, seed=0)
     assert result.distinct == 1 and len(result.representatives) == 1 and np.all(result.labels == 0)
-    nbr, wts, lam = cluster.interpolation_weights(d, w, d[result.representatives], w[result.representatives],
-                                                  GRID, rep_rows=result.representatives, rows=np.arange(20))
+    nbr, wts, lam = interpolation_weights(d, w, d[result.representatives], w[result.representatives],
+                                          GRID, rep_rows=result.representatives, rows=np.arange(20))
     assert np.isinf(lam) and np.all(nbr == 0)
     np.testing.assert_allclose(wts.sum(axis=1), 1.0)
     # two identical representatives: a singular eq. 18 system still gives finite weights summing to 1
-    sol = cluster.constrained_least_squares(np.stack([d[0].ravel(), d[0].ravel()], axis=1), d[0].ravel())
+    sol = constrained_least_squares(np.stack([d[0].ravel(), d[0].ravel()], axis=1), d[0].ravel())
     assert np.isfinite(sol).all() and sol.sum() == pytest.approx(1.0)
 
 
@@ -300,9 +304,9 @@ def test_ann_search_completes_like_the_exact_search():
     frames = np.linspace(0, 2 * np.pi, 96, endpoint=False) + 0.02
     d, w = partial(frames, scale=np.random.default_rng(2).uniform(0.3, 1.0, 96))
     mask = w[0] > 0
-    target = syn.hemisphere_target(mask, GRID)
-    spectra = syn.ExemplarSpectra(d, w, GRID)
-    search = syn.HistogramSearch(d, mask, GRID, syn.region_shifts(mask, GRID, 20, 0.5, 0.85), **ANN)
+    target = synthesis.hemisphere_target(mask, GRID)
+    spectra = synthesis.ExemplarSpectra(d, w, GRID)
+    search = synthesis.HistogramSearch(d, mask, GRID, synthesis.region_shifts(mask, GRID, 20, 0.5, 0.85), **ANN)
     assert all(index is not None for index in search.indexes)
     truth = ggx_table(frames[0])[0]
     cos = GRID.directions[..., 2]
@@ -310,8 +314,8 @@ def test_ann_search_completes_like_the_exact_search():
     def on_target(x):
         return x / GRID.integrate(np.where(target, x * cos, 0.0))
 
-    ann = syn.complete(d[0], w[0], spectra, d, w, GRID, target, KNOBS, search=search, exclude=0)
-    exact = syn.complete(d[0], w[0], spectra, d, w, GRID, target, KNOBS, exclude=0)
+    ann = synthesis.complete(d[0], w[0], spectra, d, w, GRID, target, KNOBS, search=search, exclude=0)
+    exact = synthesis.complete(d[0], w[0], spectra, d, w, GRID, target, KNOBS, exclude=0)
     e_ann, e_exact = (rel_l2(on_target(c.ndf), on_target(truth), target) for c in (ann, exact))
     print(f"ANN: coverage {ann.coverage:.3f} error {e_ann:.3f}; exact: {exact.coverage:.3f} {e_exact:.3f}")
     assert ann.coverage >= 0.83 and exact.coverage >= 0.83     # the paper's overlap rule: measured 0.870, 0.855
@@ -347,23 +351,23 @@ def test_eq15_tiny_overlap_and_extreme_scales():
     one = np.zeros_like(w)
     one[0, 3, 10] = one[1, 3, 10] = 1.0                      # each domain: one cell, the same one
     one[1, 4, 20] = 0.5                                      # ... and one of its own
-    m = syn.distance(d[0], one[0], d[1], one[1], SGRID)
+    m = synthesis.distance(d[0], one[0], d[1], one[1], SGRID)
     assert m.distance < 1e-12 / SGRID.solid_angles[3, 10] ** 2 and m.relative < 1e-12   # 0 up to rounding
     assert m.overlap == pytest.approx(SGRID.solid_angles[3, 10], rel=1e-12)
     scale = 1.0 / SGRID.solid_angles[3, 10] ** 2
-    assert abs(syn.pairwise_distance(d[:1], one[:1], d[1:], one[1:], SGRID)[0, 0]) < 1e-9 * scale
-    match, frac = syn.ExemplarSpectra(d[1:], one[1:], SGRID).scores(d[0], one[0])
+    assert abs(synthesis.pairwise_distance(d[:1], one[:1], d[1:], one[1:], SGRID)[0, 0]) < 1e-9 * scale
+    match, frac = synthesis.ExemplarSpectra(d[1:], one[1:], SGRID).scores(d[0], one[0])
     assert abs(match.distance[0, 0]) < 1e-5 * scale and np.isfinite(match.distance[0, 0])
     assert not np.isnan(match.distance).any() and not np.isnan(frac).any()
-    base = syn.distance(d[0], w[0], d[1], w[1], SGRID)
-    spectra_base, _ = syn.ExemplarSpectra(d[1:], w[1:], SGRID).scores(d[0], w[0])
+    base = synthesis.distance(d[0], w[0], d[1], w[1], SGRID)
+    spectra_base, _ = synthesis.ExemplarSpectra(d[1:], w[1:], SGRID).scores(d[0], w[0])
     for s1, s2 in ((1e-6, 1.0), (1.0, 1e6), (1e-6, 1e6)):
-        m = syn.distance(s1 * d[0], w[0], s2 * d[1], w[1], SGRID)
+        m = synthesis.distance(s1 * d[0], w[0], s2 * d[1], w[1], SGRID)
         assert m.distance == pytest.approx(float(base.distance), rel=1e-9)
-        fft, _ = syn.ExemplarSpectra(s2 * d[1:], w[1:], SGRID).scores(s1 * d[0], w[0])
+        fft, _ = synthesis.ExemplarSpectra(s2 * d[1:], w[1:], SGRID).scores(s1 * d[0], w[0])
         assert np.isfinite(fft.distance).all()
         np.testing.assert_allclose(fft.distance, spectra_base.distance, rtol=1e-3, atol=1e-3 * float(base.distance))
-    empty = syn.distance(1e-32 * d[0], w[0], d[1], w[1], SGRID)
+    empty = synthesis.distance(1e-32 * d[0], w[0], d[1], w[1], SGRID)
     assert np.isinf(empty.distance) and empty.s1 == 0 and empty.weight == 0 and not np.isnan(empty.relative)
 
 
@@ -374,7 +378,7 @@ def test_identical_ndfs_everywhere_through_the_stages(tmp_path):
     matches, or by azimuthal symmetry), so on every covered cell the completed NDF equals the true
     isotropic GGX (to the half-float rounding of the stored partial NDFs, 2^-11), and nothing is NaN."""
     from facetsynth.fileio import write_json
-    from facetsynth.stages import cluster as st_cluster, synthesize as st_synth
+    from facetsynth.stages import cluster, synthesize
     from facetsynth.tables import support_writer
     geometry = write_rectified(tmp_path / "cap", one_material((0.2,) * 3, (0.5,) * 3), PlaneGrid(0.1, 0.1, 5, 5),
                                rig_lights(2, 2))
@@ -383,8 +387,8 @@ def test_identical_ndfs_everywhere_through_the_stages(tmp_path):
         write(np.repeat(w, 25, 0) > 0, ndf=np.repeat(d, 25, 0), confidence=np.repeat(w, 25, 0))
     write_json(tmp_path / "grid.json", SGRID.to_dict())
     out = tmp_path / "out"
-    st_cluster.run(st_cluster.Inputs(geometry=geometry, ndf=tmp_path / "partial", grid=tmp_path / "grid.json"),
-         st_cluster.Outputs(labels=out / "labels.npy",
+    cluster.run(cluster.Inputs(geometry=geometry, ndf=tmp_path / "partial", grid=tmp_path / "grid.json"),
+         cluster.Outputs(labels=out / "labels.npy",
          representatives=out / "reps.npy", neighbours=out / "nbr.npy", weights=out / "wts.npy",
          rep_ndf=out / "rep_ndf.npy", rep_confidence=out / "rep_conf.npy", rotation=out / "rotation.npy",
          metrics=out / "cluster.json"))
@@ -392,9 +396,9 @@ def test_identical_ndfs_everywhere_through_the_stages(tmp_path):
     assert m["distinct_ndfs"] == 1 and m["representatives"] == 1 and m["lambda"] is None
     wts = np.load(out / "wts.npy")
     assert np.all(np.load(out / "labels.npy") == 0) and np.all(wts[:, 0] == 1) and np.all(wts[:, 1:] == 0)
-    st_synth.run(st_synth.Inputs(geometry=geometry, ndf=tmp_path / "partial",
+    synthesize.run(synthesize.Inputs(geometry=geometry, ndf=tmp_path / "partial",
          grid=tmp_path / "grid.json", representatives=out / "reps.npy", neighbours=out / "nbr.npy",
-         weights=out / "wts.npy"), st_synth.Outputs(ndf=out / "ndf.npy", confidence=out / "w.npy",
+         weights=out / "wts.npy"), synthesize.Outputs(ndf=out / "ndf.npy", confidence=out / "w.npy",
          fresnel_cosine=out / "cos.npy", grid=out / "grid.json", metrics=out / "synth.json"))
     table, conf = np.load(out / "ndf.npy"), np.load(out / "w.npy")
     assert table.shape == (1,) + SGRID.shape and np.isfinite(table).all() and (table >= 0).all()

@@ -9,11 +9,11 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
-from facetsynth import manifest as manifest_io
+from facetsynth import manifest
 from facetsynth.errors import InputError
 from facetsynth.fileio import read_frame, write_exr
 from facetsynth.response import Response
-from facetsynth.stages import hdr as hdr_stage
+from facetsynth.stages import hdr
 from facetsynth.transfer import Transfer, decode, parse, table
 from test_response import LIGHTS, MANIFEST, SIZE   # the bracket tests' 8-bit capture: camera and lights
 
@@ -149,8 +149,8 @@ def one_shot_capture(folder, transfer, black_level=0.0, ext=".png", times=(TIME,
 
 def run_stage(tmp_path, capture="cap", out="hdr"):
     out = tmp_path / out
-    hdr_stage.run(hdr_stage.Inputs(capture=tmp_path / capture),
-                  hdr_stage.Outputs(frames=out / "frames", manifest=out / "manifest.json", metrics=out / "metrics.json"))
+    hdr.run(hdr.Inputs(capture=tmp_path / capture),
+            hdr.Outputs(frames=out / "frames", manifest=out / "manifest.json", metrics=out / "metrics.json"))
     return out, json.loads((out / "metrics.json").read_text())
 
 
@@ -184,7 +184,7 @@ def test_hdr_stage_recovers_one_8bit_exposure_per_frame_with_a_declared_transfer
     assert np.median(rel_bright) < 0.004 and rel_bright.max() < 0.0085     # half a code at 0.25: 0.0079..0.0081
     assert metrics["saturated_pixels"] > 0
     # The output is a linear HDR capture: no transfer, no black level; loadable and merged again as EXR.
-    hdr_manifest = manifest_io.load(out / "manifest.json")
+    hdr_manifest = manifest.load(out / "manifest.json")
     assert "transfer" not in hdr_manifest and "black_level" not in hdr_manifest
     assert hdr_manifest["saturation"] is None
     assert all(len(f["exposures"]) == 1 and f["exposures"][0]["time"] == 1.0 for f in hdr_manifest["frames"])

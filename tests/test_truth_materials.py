@@ -29,7 +29,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.special import erf
 
-from facetsynth import manifest, microfacet as mf
+from facetsynth import manifest, microfacet
 from facetsynth.errors import InputError
 from facetsynth.fileio import read_rgb
 from facetsynth.scene import Scene, measured_kd
@@ -38,8 +38,8 @@ from facetsynth.virtual_rig import VirtualRig, capture
 
 SATIN = "satin_rosaline_rgb.bsdf"
 NEW_SCENES = ["rgl-quadrants", "measured-satin", "height-correlated", "conductor", "coated"]
-CU_N, CU_K = (np.array(v) for v in mf.CONDUCTORS["copper"])
-AU_N, AU_K = (np.array(v) for v in mf.CONDUCTORS["gold"])
+CU_N, CU_K = (np.array(v) for v in microfacet.CONDUCTORS["copper"])
+AU_N, AU_K = (np.array(v) for v in microfacet.CONDUCTORS["gold"])
 
 
 def sph(theta_deg, phi_deg=0.0):
@@ -83,10 +83,10 @@ def test_smith_lambda_matches_heitz_closed_forms_and_eq5_quadrature(kind):
     tan2 = (k[..., 0] ** 2 + k[..., 1] ** 2) / k[..., 2] ** 2
     ref = (lambda_ggx if kind == "ggx" else lambda_beckmann)(np.where(tan2 > 0, tan2, 1.0), alpha_k2(k, au, av, pf))
     ref[0] = 0.0                                                   # Lambda(n) = 0
-    got = mf.smith_lambda(k, au, av, pf, kind)
+    got = microfacet.smith_lambda(k, au, av, pf, kind)
     np.testing.assert_allclose(got, ref, rtol=1e-10, atol=1e-15)
     # Eq. 5's projected area by quadrature of the NDF: A(k) = cos(theta_k) (1 + Lambda(k)).
-    area = mf.projected_area_numerical(k[:5], lambda h: mf.ndf(h, au, av, pf, kind))
+    area = microfacet.projected_area_numerical(k[:5], lambda h: microfacet.ndf(h, au, av, pf, kind))
     np.testing.assert_allclose(got[:5], area / k[:5, 2] - 1.0, rtol=1e-6, atol=1e-9)
 
 
@@ -94,15 +94,15 @@ def test_height_correlated_g2_known_values_and_bounds():
     # GGX alpha 0.5, theta_i = theta_o = 60 deg: Lambda = (-1 + sqrt(1.75))/2 = 0.1614378278
     # G2 = 1/(1 + 2 Lambda) = 0.7559289460, separable G1^2 = 1/(1 + Lambda)^2 = 0.7413240102.
     wi, wo = sph(60.0, 0.0), sph(60.0, 180.0)
-    assert mf.smith_lambda(wi, 0.5, 0.5) == pytest.approx(0.1614378278, rel=1e-9)
-    assert mf.masking_shadowing(wi, wo, 0.5, 0.5) == pytest.approx(0.7559289460, rel=1e-9)
-    assert mf.masking_shadowing(wi, wo, 0.5, 0.5, correlated=False) == pytest.approx(0.7413240102, rel=1e-9)
+    assert microfacet.smith_lambda(wi, 0.5, 0.5) == pytest.approx(0.1614378278, rel=1e-9)
+    assert microfacet.masking_shadowing(wi, wo, 0.5, 0.5) == pytest.approx(0.7559289460, rel=1e-9)
+    assert microfacet.masking_shadowing(wi, wo, 0.5, 0.5, correlated=False) == pytest.approx(0.7413240102, rel=1e-9)
     # Beckmann alpha 0.3, theta 70 deg: a = 1/(0.3 tan 70) = 1.213234, Lambda = 0.0102557 (eq. 72).
     wb = sph(70.0, 45.0)
     lam = lambda_beckmann(np.tan(np.radians(70.0)) ** 2, 0.09)
     assert lam == pytest.approx(0.0102557277, rel=1e-8)
-    assert mf.smith_lambda(wb, 0.3, 0.3, kind="beckmann") == pytest.approx(lam, rel=1e-12)
-    assert mf.masking_shadowing(wb, sph(30.0, 200.0), 0.3, 0.3, kind="beckmann") == pytest.approx(
+    assert microfacet.smith_lambda(wb, 0.3, 0.3, kind="beckmann") == pytest.approx(lam, rel=1e-12)
+    assert microfacet.masking_shadowing(wb, sph(30.0, 200.0), 0.3, 0.3, kind="beckmann") == pytest.approx(
         1.0 / (1.0 + lam + lambda_beckmann(np.tan(np.radians(30.0)) ** 2, 0.09)), rel=1e-12)
     # Bounds over many pairs; equality with i = n (Lambda(n) = 0).
     rng = np.random.default_rng(4)
@@ -110,13 +110,13 @@ def test_height_correlated_g2_known_values_and_bounds():
     p = rng.uniform(0, 360, (2, 4000))
     wi, wo = sph(t[0], p[0]), sph(t[1], p[1])
     for kind in ("ggx", "beckmann"):
-        g1i, g1o = mf.shadowing(wi, 0.4, 0.15, 0.3, kind), mf.shadowing(wo, 0.4, 0.15, 0.3, kind)
-        g2 = mf.masking_shadowing(wi, wo, 0.4, 0.15, 0.3, kind)
+        g1i, g1o = microfacet.shadowing(wi, 0.4, 0.15, 0.3, kind), microfacet.shadowing(wo, 0.4, 0.15, 0.3, kind)
+        g2 = microfacet.masking_shadowing(wi, wo, 0.4, 0.15, 0.3, kind)
         assert np.all(g2 >= g1i * g1o * (1 - 1e-14)) and np.all(g2 <= np.minimum(g1i, g1o) * (1 + 1e-14))
         both = (g1i < 1 - 1e-3) & (g1o < 1 - 1e-3)                 # Lambda(i), Lambda(o) > 0: strictly larger
         assert both.sum() > 500 and np.all(g2[both] > g1i[both] * g1o[both] * (1 + 1e-9))
         n = np.broadcast_to([0.0, 0.0, 1.0], wo.shape)
-        np.testing.assert_allclose(mf.masking_shadowing(n, wo, 0.4, 0.15, 0.3, kind), g1o, rtol=1e-14)
+        np.testing.assert_allclose(microfacet.masking_shadowing(n, wo, 0.4, 0.15, 0.3, kind), g1o, rtol=1e-14)
 
 
 @pytest.mark.parametrize("kind", ["ggx", "beckmann"])
@@ -130,11 +130,11 @@ def test_height_correlated_rho_is_eq6_with_g2(kind):
     lam = (lambda_ggx if kind == "ggx" else lambda_beckmann)
     g2 = 1.0 / (1.0 + sum(lam((v[:, 0] ** 2 + v[:, 1] ** 2) / v[:, 2] ** 2, alpha_k2(v, au, av, pf)) for v in (wi, wo)))
     f = fresnel_complex(np.sum(wi * h, -1), [eta], [0.0])[:, 0]
-    ref = kd / np.pi + ks * (mf.ndf(h, au, av, pf, kind) * f * g2 / (4 * wi[:, 2] * wo[:, 2]))[:, None]
-    got = mf.rho_extended(wi, wo, kd, ks, eta, au, av, pf, kind, correlated=True)
+    ref = kd / np.pi + ks * (microfacet.ndf(h, au, av, pf, kind) * f * g2 / (4 * wi[:, 2] * wo[:, 2]))[:, None]
+    got = microfacet.rho_extended(wi, wo, kd, ks, eta, au, av, pf, kind, correlated=True)
     np.testing.assert_allclose(got, ref, rtol=1e-9)
-    spec = mf.rho_extended(wi, wo, 0.0, ks, eta, au, av, pf, kind, correlated=True)[:, 0]
-    spec_sep = mf.rho(wi, wo, 0.0, ks, eta, au, av, pf, kind)[:, 0]
+    spec = microfacet.rho_extended(wi, wo, 0.0, ks, eta, au, av, pf, kind, correlated=True)[:, 0]
+    spec_sep = microfacet.rho(wi, wo, 0.0, ks, eta, au, av, pf, kind)[:, 0]
     lit = spec_sep > 1e-6
     assert np.all(spec >= spec_sep * (1 - 1e-12)) and np.max(spec[lit] / spec_sep[lit]) > 1.01
 
@@ -142,20 +142,22 @@ def test_height_correlated_rho_is_eq6_with_g2(kind):
 # ============================================================================ conductor Fresnel
 def test_conductor_fresnel_normal_incidence_grazing_and_amplitude_equations():
     # Published normal-incidence reflectance of the RGB constants: ((n-1)^2 + k^2)/((n+1)^2 + k^2).
-    np.testing.assert_allclose(mf.fresnel_conductor(1.0, CU_N, CU_K), [0.952141, 0.619675, 0.510577], rtol=2e-6)
-    np.testing.assert_allclose(mf.fresnel_conductor(1.0, AU_N, AU_K), [0.966663, 0.802190, 0.324049], rtol=2e-6)
+    np.testing.assert_allclose(microfacet.fresnel_conductor(1.0, CU_N, CU_K), [0.952141, 0.619675, 0.510577], rtol=2e-6)
+    np.testing.assert_allclose(microfacet.fresnel_conductor(1.0, AU_N, AU_K), [0.966663, 0.802190, 0.324049], rtol=2e-6)
     for n, k in ((CU_N, CU_K), (AU_N, AU_K), (np.array([1.5, 2.9, 0.05]), np.array([0.0, 3.2, 0.4]))):
         f0 = ((n - 1) ** 2 + k**2) / ((n + 1) ** 2 + k**2)
-        np.testing.assert_allclose(mf.fresnel_conductor(1.0, n, k), f0, rtol=1e-14)
+        np.testing.assert_allclose(microfacet.fresnel_conductor(1.0, n, k), f0, rtol=1e-14)
         c = np.cos(np.radians(np.linspace(0.0, 89.99, 400)))
-        np.testing.assert_allclose(mf.fresnel_conductor(c, n, k), fresnel_complex(c, n, k), rtol=1e-11, atol=1e-15)
-        assert np.all(mf.fresnel_conductor(0.0, n, k) == 1.0)                   # grazing: 1
-        np.testing.assert_allclose(mf.fresnel_conductor(1e-12, n, k), 1.0, rtol=1e-10)
-        graze = mf.fresnel_conductor(np.cos(np.radians(89.9)), n, k)
+        np.testing.assert_allclose(microfacet.fresnel_conductor(c, n, k), fresnel_complex(c, n, k), rtol=1e-11,
+                                   atol=1e-15)
+        assert np.all(microfacet.fresnel_conductor(0.0, n, k) == 1.0)                   # grazing: 1
+        np.testing.assert_allclose(microfacet.fresnel_conductor(1e-12, n, k), 1.0, rtol=1e-10)
+        graze = microfacet.fresnel_conductor(np.cos(np.radians(89.9)), n, k)
         assert np.all(graze > 0.98) and np.all(graze <= 1.0)
     # k = 0 is the dielectric of eq. 3
     c = np.linspace(0.0, 1.0, 50)
-    np.testing.assert_allclose(mf.fresnel_conductor(c, [1.5], [0.0])[:, 0], mf.fresnel(c, 1.5), rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(microfacet.fresnel_conductor(c, [1.5], [0.0])[:, 0], microfacet.fresnel(c, 1.5),
+                               rtol=1e-12, atol=1e-15)
 
 
 def test_conductor_fresnel_matches_mitsuba():
@@ -165,16 +167,17 @@ def test_conductor_fresnel_matches_mitsuba():
     for c in (0.02, 0.3, 0.7, 1.0):
         for ch in range(3):
             ref = mi.fresnel_conductor(c, dr.scalar.Complex2f(float(CU_N[ch]), float(CU_K[ch])))
-            assert mf.fresnel_conductor(c, CU_N, CU_K)[ch] == pytest.approx(ref, rel=1e-5)
+            assert microfacet.fresnel_conductor(c, CU_N, CU_K)[ch] == pytest.approx(ref, rel=1e-5)
 
 
 def test_conductor_rho_uses_the_complex_fresnel_per_channel():
     wi, wo = sph(np.array([10.0, 40.0, 75.0]), 0.0), sph(np.array([20.0, 45.0, 60.0]), 170.0)
     h = (wi + wo) / np.linalg.norm(wi + wo, axis=-1, keepdims=True)
     cond = np.broadcast_to(CU_N + 1j * CU_K, (3, 3))
-    got = mf.rho_extended(wi, wo, np.zeros(3), np.ones(3), 1.5, 0.2, 0.2, 0.0, conductor=cond)
+    got = microfacet.rho_extended(wi, wo, np.zeros(3), np.ones(3), 1.5, 0.2, 0.2, 0.0, conductor=cond)
     f = fresnel_complex(np.sum(wi * h, -1), CU_N, CU_K)
-    spec = mf.ndf(h, 0.2, 0.2) * mf.shadowing(wi, 0.2, 0.2) * mf.shadowing(wo, 0.2, 0.2) / (4 * wi[:, 2] * wo[:, 2])
+    spec = (microfacet.ndf(h, 0.2, 0.2) * microfacet.shadowing(wi, 0.2, 0.2) * microfacet.shadowing(wo, 0.2, 0.2)
+            / (4 * wi[:, 2] * wo[:, 2]))
     np.testing.assert_allclose(got, spec[:, None] * f, rtol=1e-10)
     assert np.all(got[:, 0] > got[:, 1]) and np.all(got[:, 1] > got[:, 2])     # copper: reddish
 
@@ -185,27 +188,28 @@ def test_coat_formula_weight_zero_and_energy():
     wi = sph(np.degrees(np.arccos(rng.uniform(0.05, 1, 200))), rng.uniform(0, 360, 200))
     wo = sph(np.degrees(np.arccos(rng.uniform(0.05, 1, 200))), rng.uniform(0, 360, 200))
     kd, ks, base = np.array([0.45, 0.06, 0.05]), np.full(3, 0.25), (1.5, 0.35, 0.35, 0.0)
-    rho_b = mf.rho(wi, wo, kd, ks, *base)
+    rho_b = microfacet.rho(wi, wo, kd, ks, *base)
     coat = np.array([1.5, 0.03, 0.8])
     h = (wi + wo) / np.linalg.norm(wi + wo, axis=-1, keepdims=True)
-    lobe = 0.8 * mf.ndf(h, 0.03, 0.03) * mf.fresnel(np.sum(wi * h, -1), 1.5) \
-        * mf.shadowing(wi, 0.03, 0.03) * mf.shadowing(wo, 0.03, 0.03) / (4 * wi[:, 2] * wo[:, 2])
-    t = (1 - 0.8 * mf.fresnel(wi[:, 2], 1.5)) * (1 - 0.8 * mf.fresnel(wo[:, 2], 1.5))
-    got = mf.rho_extended(wi, wo, kd, ks, *base, coat=np.broadcast_to(coat, (200, 3)))
+    lobe = 0.8 * microfacet.ndf(h, 0.03, 0.03) * microfacet.fresnel(np.sum(wi * h, -1), 1.5) \
+        * microfacet.shadowing(wi, 0.03, 0.03) * microfacet.shadowing(wo, 0.03, 0.03) / (4 * wi[:, 2] * wo[:, 2])
+    t = (1 - 0.8 * microfacet.fresnel(wi[:, 2], 1.5)) * (1 - 0.8 * microfacet.fresnel(wo[:, 2], 1.5))
+    got = microfacet.rho_extended(wi, wo, kd, ks, *base, coat=np.broadcast_to(coat, (200, 3)))
     np.testing.assert_allclose(got, lobe[:, None] + t[:, None] * rho_b, rtol=1e-10)
     # At normal incidence both ways (h = n): lobe = w D(n) F0 / 4 with D(n) = 1/(pi alpha^2), F0 = 0.04,
     # base times (1 - w F0)^2.
     n = np.array([0.0, 0.0, 1.0])
-    expect = 0.8 / (np.pi * 0.03**2) * 0.04 / 4 + (1 - 0.8 * 0.04) ** 2 * mf.rho(n, n, kd, ks, *base)
-    np.testing.assert_allclose(mf.rho_extended(n, n, kd, ks, *base, coat=coat), expect, rtol=1e-12)
+    expect = 0.8 / (np.pi * 0.03**2) * 0.04 / 4 + (1 - 0.8 * 0.04) ** 2 * microfacet.rho(n, n, kd, ks, *base)
+    np.testing.assert_allclose(microfacet.rho_extended(n, n, kd, ks, *base, coat=coat), expect, rtol=1e-12)
     # Weight 0: the base, bit for bit.
-    assert np.array_equal(mf.rho_extended(wi, wo, kd, ks, *base, coat=np.zeros((200, 3))), rho_b)
+    assert np.array_equal(microfacet.rho_extended(wi, wo, kd, ks, *base, coat=np.zeros((200, 3))), rho_b)
     # Energy: a coat (alpha 0.3) over a white Lambertian base reflects at most what comes in.
     tt, pp = np.meshgrid(np.radians(np.linspace(0.1, 89.9, 300)), np.radians(np.linspace(0, 360, 360, endpoint=False)))
     wos = np.stack([np.sin(tt) * np.cos(pp), np.sin(tt) * np.sin(pp), np.cos(tt)], -1)
     dw = np.radians(89.8 / 299) * np.radians(1.0) * np.sin(tt)
     for theta in (0.0, 45.0, 80.0):
-        r = mf.rho_extended(sph(theta), wos, np.ones(3), np.zeros(3), 1.5, 0.5, 0.5, coat=np.array([1.5, 0.3, 1.0]))
+        r = microfacet.rho_extended(sph(theta), wos, np.ones(3), np.zeros(3), 1.5, 0.5, 0.5,
+                                    coat=np.array([1.5, 0.3, 1.0]))
         albedo = np.sum(r[..., 0] * wos[..., 2] * dw)
         assert 0.5 < albedo < 1.0, (theta, albedo)                # 0.90, 0.89, 0.67 (grazing losses)
 
@@ -258,7 +262,7 @@ def test_mirror_peaks_say_whether_one_eq6_material_can_show_a_measured_file(repo
     for theta in np.radians([30.0, 54.0]):
         wo, wi = np.array([np.sin(theta), 0.0, np.cos(theta)]), np.array([-np.sin(theta), 0.0, np.cos(theta)])
         rho_s = rgl_eval(path, wi[None], wo[None])[0].mean() - measured_kd(path).mean() / np.pi
-        implied.append(rho_s * 4 * np.cos(theta) ** 2 / mf.fresnel(np.cos(theta), 1.5))
+        implied.append(rho_s * 4 * np.cos(theta) ** 2 / microfacet.fresnel(np.cos(theta), 1.5))
     assert low < implied[0] / implied[1] < high
 
 
@@ -300,21 +304,22 @@ def test_analytic_mask_take_and_ndf_carry_every_kind(repo):
     np.testing.assert_array_equal(maps.analytic, [True, False, False, False, False, True])   # marker: eq. 6, 0
     np.testing.assert_array_equal(maps.correlated, [False, True, False, False, False, False])
     np.testing.assert_allclose(maps.conductor[2], AU_N + 1j * AU_K)
-    assert maps.eta[2] == pytest.approx(mf.conductor_equivalent_eta(AU_N, AU_K)) and maps.eta[2] > 10
+    assert maps.eta[2] == pytest.approx(microfacet.conductor_equivalent_eta(AU_N, AU_K)) and maps.eta[2] > 10
     np.testing.assert_array_equal(maps.coat[3], [1.5, 0.05, 1.0])
     np.testing.assert_array_equal(maps.measured, [-1, -1, -1, -1, 0, -1])
     wi, wo = sph(np.full(6, 35.0), 10.0), sph(np.full(6, 50.0), 200.0)
     r = maps.rho(wi, wo)
     assert np.all(r[5] == 0) and np.all(r[:5] > 0)
     # each point's rho is its own kind's
-    one = lambda j, **kw: mf.rho_extended(wi[j], wo[j], maps.kd[j], maps.ks[j], maps.eta[j], 0.2, 0.3,  # noqa: E731
-                                          np.radians(20), **kw)
-    np.testing.assert_array_equal(r[0], mf.rho(wi[0], wo[0], maps.kd[0], maps.ks[0], 1.5, 0.2, 0.3, np.radians(20)))
+    one = lambda j, **kw: microfacet.rho_extended(wi[j], wo[j], maps.kd[j], maps.ks[j], maps.eta[j],  # noqa: E731
+                                                  0.2, 0.3, np.radians(20), **kw)
+    np.testing.assert_array_equal(r[0], microfacet.rho(wi[0], wo[0], maps.kd[0], maps.ks[0], 1.5, 0.2, 0.3,
+                                                       np.radians(20)))
     np.testing.assert_allclose(r[1], one(1, correlated=True), rtol=1e-14)
     np.testing.assert_allclose(r[2], one(2, conductor=AU_N + 1j * AU_K), rtol=1e-14)
     np.testing.assert_allclose(r[3], one(3, coat=np.array([1.5, 0.05, 1.0])), rtol=1e-14)
     np.testing.assert_allclose(r[4], 0.5 * rgl_eval(str(repo / "resources/brdfs/rgl" / SATIN),
-                                                   mf.to_local(wi[4], np.radians(0.0)), wo[4]), rtol=1e-12)
+                                                   microfacet.to_local(wi[4], np.radians(0.0)), wo[4]), rtol=1e-12)
     # take carries every map, in any index form
     for index in ([4, 1, 0], np.array([False, True, False, False, True, False]), (np.arange(6), None)):
         sub = maps.take(index)
@@ -325,7 +330,7 @@ def test_analytic_mask_take_and_ndf_carry_every_kind(repo):
     np.testing.assert_allclose(maps.take([4, 1, 0]).rho(wi[[4, 1, 0]], wo[[4, 1, 0]]), r[[4, 1, 0]], rtol=1e-14)
     # ndf: the analytic lobe where one is defined, 0 on measured points
     d = maps.ndf(sph(np.full(6, 10.0), 30.0))
-    np.testing.assert_allclose(d[:4], mf.ndf(sph(10.0, 30.0), 0.2, 0.3, np.radians(20)))
+    np.testing.assert_allclose(d[:4], microfacet.ndf(sph(10.0, 30.0), 0.2, 0.3, np.radians(20)))
     assert d[4] == 0
     # a plain scene still has every point analytic and no extra maps
     plain = Scene.load(repo / "resources/scenes/demo.yaml").parameters(xy)
@@ -371,8 +376,8 @@ def test_prop_new_kinds_reciprocal_non_negative_finite(wi, wo, au, av, pf, kind,
     kd, ks = np.array([0.3, 0.2, 0.1]), np.array([0.8, 0.6, 0.9])
     kw = {"correlated": {"correlated": True}, "coat": {"coat": np.array([1.5, alpha_c, weight])},
           "copper": {"conductor": CU_N + 1j * CU_K}, "gold": {"conductor": AU_N + 1j * AU_K}}[variant]
-    r1 = mf.rho_extended(wi, wo, kd, ks, 1.5, au, av, pf, kind, **kw)
-    r2 = mf.rho_extended(wo, wi, kd, ks, 1.5, au, av, pf, kind, **kw)
+    r1 = microfacet.rho_extended(wi, wo, kd, ks, 1.5, au, av, pf, kind, **kw)
+    r2 = microfacet.rho_extended(wo, wi, kd, ks, 1.5, au, av, pf, kind, **kw)
     assert np.all(np.isfinite(r1)) and np.all(r1 >= 0)
     np.testing.assert_allclose(r1, r2, rtol=1e-12, atol=0)
     if wi[2] <= 0 or wo[2] <= 0:
@@ -404,12 +409,12 @@ def test_grazing_and_below_horizon_every_kind(repo):
     up = sph(np.full(4, 30.0), 0.0)
     assert np.all(maps.rho(below[None], up[None]) == 0) and np.all(maps.rho(up[None], below[None]) == 0)
     cond = np.broadcast_to(CU_N + 1j * CU_K, (4, 3))
-    assert np.all(mf.rho_extended(below, up, np.ones(3), np.ones(3), 1.5, 0.1, 0.1, correlated=True,
-                                  conductor=cond, coat=np.array([1.5, 0.02, 1.0])) == 0)
+    assert np.all(microfacet.rho_extended(below, up, np.ones(3), np.ones(3), 1.5, 0.1, 0.1, correlated=True,
+                                          conductor=cond, coat=np.array([1.5, 0.02, 1.0])) == 0)
     # both directions a hair above the horizon: the height-correlated term stays finite
     tiny = np.array([[1.0, 0.0, 1e-300], [-1.0, 0.0, 1e-300]])
-    assert np.all(np.isfinite(mf.rho_extended(tiny[0], tiny[1], np.ones(3), np.ones(3), 1.5, 0.1, 0.1,
-                                              correlated=True)))
+    assert np.all(np.isfinite(microfacet.rho_extended(tiny[0], tiny[1], np.ones(3), np.ones(3), 1.5, 0.1, 0.1,
+                                                      correlated=True)))
 
 
 # ============================================================================ the truth travels with a capture

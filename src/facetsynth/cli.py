@@ -71,10 +71,11 @@ def _render(args: argparse.Namespace) -> None:
 def _export(args: argparse.Namespace) -> None:
     """A fitted SVBRDF folder as a renderer's scene and material (exact: Mitsuba 3; portable: glTF 2.0)."""
     if args.format == "mitsuba":
-        from .export.mitsuba import export_mitsuba as export
+        from .export.mitsuba import export_mitsuba
+        done = export_mitsuba(args.model_dir, args.out_dir, force=args.force)
     else:
-        from .export.gltf import export_gltf as export
-    done = export(args.model_dir, args.out_dir, force=args.force)
+        from .export.gltf import export_gltf
+        done = export_gltf(args.model_dir, args.out_dir, force=args.force)
     print(f"{args.out_dir}: {args.format} export of {args.model_dir}, {len(done['files'])} file(s)")
     for line in done.get("next", []):
         print(f"  {line}")

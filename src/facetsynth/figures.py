@@ -447,9 +447,9 @@ def _plane_and_visible(geometry: str | Path):
 def write_capture(manifest: str | Path, out: str | Path, sample: str,
                   settings: FigureSettings = FigureSettings()) -> None:
     """A mosaic of ``count`` HDR frames evenly spread over the capture (stage ``hdr``)."""
-    from . import manifest as manifest_io
     from .fileio import read_rgb
-    m = manifest_io.load(manifest)
+    from .manifest import load
+    m = load(manifest)
     picks = mosaic_frames(len(m["frames"]), settings.mosaic_frames)
     frames = [read_rgb(m["frames"][q]["exposures"][0]["file"]) for q in picks]
     titles = []
@@ -535,18 +535,18 @@ def write_heldout(view: str, heldout: str | Path, predictions: str | Path, svbrd
                   settings: FigureSettings = FigureSettings()) -> None:
     """The ``settings.heldout_frames`` brightest frames of a held-out view (stage ``validate``): truth, our
     prediction, Ward's, and their differences."""
-    from . import manifest as manifest_io
+    from . import manifest
     from .fileio import read_json, read_rgb
     from .predict import FrameRenderer, load_model
-    m = manifest_io.load(Path(heldout) / "manifest.json", check_files=False)
-    mask = FrameRenderer(load_model(svbrdf), manifest_io.camera(m)).sample_mask
+    m = manifest.load(Path(heldout) / "manifest.json", check_files=False)
+    mask = FrameRenderer(load_model(svbrdf), manifest.camera(m)).sample_mask
     truth = [read_rgb(f["truth"]["radiance"]) for f in m["frames"]]
     brightest = np.argsort([float(finite(t).sum()) for t in truth])[::-1][:settings.heldout_frames]
     preds = {}
     for name in ("ours", "ward"):
         folder = Path(predictions) / name
         if (folder / "manifest.json").is_file():
-            p = manifest_io.load(folder / "manifest.json", check_files=False)
+            p = manifest.load(folder / "manifest.json", check_files=False)
             preds[name] = {q: p["frames"][q]["exposures"][0]["file"] for q in brightest}
     record = read_json(metrics).get("views", {}).get(view, {})
     rows = [{"truth": truth[q], "ours": read_rgb(preds["ours"][q]),

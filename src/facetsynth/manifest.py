@@ -23,7 +23,7 @@ import numpy as np
 from .camera import Camera
 from .errors import InputError, excerpt
 from .fileio import read_json, write_json
-from .validation import validate as validate_schema
+from . import validation
 
 
 ROTATION_TOLERANCE = 1e-5
@@ -56,7 +56,7 @@ def validate(manifest: Any, path: str | Path | None = None) -> None:
     """
     _check_finite(manifest, path)
     try:
-        validate_schema(manifest, "capture_manifest.schema.json", path, "capture manifest")
+        validation.validate(manifest, "capture_manifest.schema.json", path, "capture manifest")
     except InputError as exc:
         raise InputError(path, exc.problem + _missing_key_hint(manifest, exc.problem)) from None
     with np.errstate(all="ignore"):    # finite values near 1e308 overflow to inf or NaN, which the checks refuse

@@ -62,7 +62,7 @@ from typing import Any
 
 import numpy as np
 
-from . import manifest as manifest_io
+from . import manifest
 from .camera import Camera
 from .fileio import atomic_dir, write_exr
 from .virtual_rig import VirtualRig
@@ -347,7 +347,7 @@ def render_capture(rig: VirtualRig | str | Path, bsdf: dict[str, Any] | list[dic
             frames.append({"light": {"position": light.tolist(), "intensity": intensity.tolist()},
                            "exposures": [{"file": name, "time": 1.0}], "led": int(led), "carriage_steps": int(steps)})
         seconds = time.perf_counter() - start
-        manifest = {
+        capture = {
             "version": 1, "units": "m",
             "sample": {"width": float(size[0]), "height": float(size[1])},
             "camera": {"width": camera.width, "height": camera.height, "K": camera.K.tolist(),
@@ -364,9 +364,9 @@ def render_capture(rig: VirtualRig | str | Path, bsdf: dict[str, Any] | list[dic
                 "note": "HDR radiance, never clipped (saturation null); pixel model I = rho (n.i) L / |P - x|^2",
             },
         }
-        manifest_io.save(staging / "manifest.json", manifest)
+        manifest.save(staging / "manifest.json", capture)
     log.info("Mitsuba capture %s: %d frames, %.2f frames/s", out_dir, len(plan), len(plan) / max(seconds, 1e-9))
-    return manifest
+    return capture
 
 
 def main(argv: list[str] | None = None) -> int:

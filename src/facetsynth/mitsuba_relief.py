@@ -56,7 +56,7 @@ from typing import Any
 
 import numpy as np
 
-from . import manifest as manifest_io
+from . import manifest
 from .fileio import atomic_dir, write_exr
 from .mitsuba_capture import mitsuba
 
@@ -336,7 +336,7 @@ def render_relief(out_dir: str | Path, size: tuple[int, int] = (128, 128), light
             frames.append({"light": {"direction": direction.tolist(), "intensity": rgb.tolist()},
                            "exposures": [{"file": name, "time": 1.0}]})
         seconds = time.perf_counter() - start
-        manifest = {
+        capture = {
             "version": 1, "units": "m",
             "sample": {"width": W / camera["K"][0][0], "height": H / camera["K"][0][0]},
             "camera": camera,
@@ -358,10 +358,10 @@ def render_relief(out_dir: str | Path, size: tuple[int, int] = (128, 128), light
                         "rho = kd/pi + GGX eq. 6 (facetsynth.microfacet.rho), v = +z",
             },
         }
-        manifest_io.save(staging / "manifest.json", manifest)   # validates: schema and meaning
+        manifest.save(staging / "manifest.json", capture)   # validates: schema and meaning
     log.info("Mitsuba relief %s: %d frames, %.2f s (%.2f frames/s)", out_dir, lights, seconds,
              lights / max(seconds, 1e-9))
-    return manifest
+    return capture
 
 
 def _portable(bsdf: dict[str, Any]) -> dict[str, Any]:

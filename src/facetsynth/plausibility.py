@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from . import manifest as manifest_io
+from . import manifest
 from .errors import InputError
 
 # --- the sample against the camera's view of it ---------------------------------------------------------
@@ -126,11 +126,11 @@ def _axis_view(H: np.ndarray, axis: int, length: float, width: int, height: int)
     return AxisView(length=length, low=low, high=high, pixels=pixels if math.isfinite(pixels) else 0.0)
 
 
-def sample_pixels(manifest: dict[str, Any], chunk_rows: int = 512) -> np.ndarray:
+def sample_pixels(capture: dict[str, Any], chunk_rows: int = 512) -> np.ndarray:
     """(height, width) bool: the pixels whose ray meets the sample plane in front of the camera, inside the
     sample's width x height about the origin (as rectify's native resolution counts them)."""
-    camera = manifest_io.camera(manifest)
-    w, h = manifest["sample"]["width"], manifest["sample"]["height"]
+    camera = manifest.camera(capture)
+    w, h = capture["sample"]["width"], capture["sample"]["height"]
     Hinv = np.linalg.inv(camera.plane_homography())
     cols = np.arange(camera.width, dtype=np.float64)
     out = np.zeros((camera.height, camera.width), bool)
@@ -147,17 +147,17 @@ def sample_pixels(manifest: dict[str, Any], chunk_rows: int = 512) -> np.ndarray
     return out
 
 
-def check_geometry(manifest: dict[str, Any], path: str | Path | None) -> list[str]:
+def check_geometry(capture: dict[str, Any], path: str | Path | None) -> list[str]:
     """The sample's size against the camera's view of it, and the lights' distances against the sample:
     InputError for what cannot be a capture, the warnings for what is doubtful."""
-    warnings = _sample_against_view(manifest, path)
-    warnings += _lights_against_sample(manifest, path)
+    warnings = _sample_against_view(capture, path)
+    warnings += _lights_against_sample(capture, path)
     return warnings
 
 
-def _sample_against_view(manifest: dict[str, Any], path: str | Path | None) -> list[str]:
-    camera = manifest_io.camera(manifest)
-    w, h = float(manifest["sample"]["width"]), float(manifest["sample"]["height"])
+def _sample_against_view(capture: dict[str, Any], path: str | Path | None) -> list[str]:
+    camera = manifest.camera(capture)
+    w, h = float(capture["sample"]["width"]), float(capture["sample"]["height"])
     H = camera.plane_homography()
     size = f"{w:.4g} x {h:.4g} m"
     corners = np.array([[sx * w / 2, sy * h / 2, 0.0] for sx, sy in ((-1, -1), (1, -1), (1, 1), (-1, 1))])
@@ -183,7 +183,7 @@ def _sample_against_view(manifest: dict[str, Any], path: str | Path | None) -> l
                                                        f"{view.pixels:.2g} pixel(s) in the image (fewer than "
                                                        f"{MIN_PIXELS_ACROSS:g}): nothing to fit; a size typed in "
                                                        "too small a unit?")
-    mask = sample_pixels(manifest)
+    mask = sample_pixels(capture)
     on_sample = int(mask.sum())
     uv = camera.project(corners)
     x, y = uv[:, 0], uv[:, 1]
@@ -208,10 +208,10 @@ def _sample_against_view(manifest: dict[str, Any], path: str | Path | None) -> l
     return warnings
 
 
-def _lights_against_sample(manifest: dict[str, Any], path: str | Path | None) -> list[str]:
-    w, h = float(manifest["sample"]["width"]), float(manifest["sample"]["height"])
+def _lights_against_sample(capture: dict[str, Any], path: str | Path | None) -> list[str]:
+    w, h = float(capture["sample"]["width"]), float(capture["sample"]["height"])
     diagonal = math.hypot(w, h)
-    points = [(q, np.asarray(f["light"]["position"], float)) for q, f in enumerate(manifest["frames"])
+    points = [(q, np.asarray(f["light"]["position"], float)) for q, f in enumerate(capture["frames"])
               if "position" in f["light"]]
     if not points:
         return []
@@ -240,10 +240,10 @@ def _lights_against_sample(manifest: dict[str, Any], path: str | Path | None) ->
     return warnings
 
 
-def check_truth_scene(manifest: dict[str, Any], path: str | Path | None) -> None:
+def check_truth_scene(capture: dict[str, Any], path: str | Path | None) -> None:
     """A virtual capture's ``truth/scene`` must be a scene file: InputError naming the key otherwise (the
     scene's own error is bounded: never the contents of another file)."""
-    scene = manifest.get("truth", {}).get("scene")
+    scene = capture.get("truth", {}).get("scene")
     if scene is None:
         return
     from .fileio import read_yaml
@@ -258,10 +258,10 @@ def check_truth_scene(manifest: dict[str, Any], path: str | Path | None) -> None
         raise InputError(path, f"invalid capture manifest at 'truth/scene': not a scene file: {exc}") from None
 
 
-def duplicate_files(manifest: dict[str, Any]) -> list[str]:
+def duplicate_files(capture: dict[str, Any]) -> list[str]:
     """A warning when one exposure file is listed by two frames (two lights cannot give one picture)."""
     first: dict[str, int] = {}
-    for q, frame in enumerate(manifest["frames"]):
+    for q, frame in enumerate(capture["frames"]):
         for exposure in frame["exposures"]:
             r = first.setdefault(exposure["file"], q)
             if r != q:
@@ -272,12 +272,12 @@ def duplicate_files(manifest: dict[str, Any]) -> list[str]:
 
 # --- clipping ---------------------------------------------------------------------------------------------
 
-def clip_level(manifest: dict[str, Any], bits: int | None, margin: float = DEFAULT_SATURATION_MARGIN) -> float:
+def clip_level(capture: dict[str, Any], bits: int | None, margin: float = DEFAULT_SATURATION_MARGIN) -> float:
     """The value from which an exposure value counts as clipped, as hdr has it: code 255 for an 8-bit image,
     (1 - margin) x saturation for an EXR, never (inf) for data stated never clipped."""
     if bits == 8:
         return 254.5
-    saturation = manifest.get("saturation")
+    saturation = capture.get("saturation")
     return math.inf if saturation is None else (1.0 - margin) * saturation
 
 
@@ -291,7 +291,7 @@ def clipped_pixels(values: list[np.ndarray], level: float) -> np.ndarray:
     return all_clipped.any(axis=-1)
 
 
-def check_clipping(clipped: list[int], on_sample: int, manifest: dict[str, Any], path: str | Path | None,
+def check_clipping(clipped: list[int], on_sample: int, capture: dict[str, Any], path: str | Path | None,
                    stage: str = "check") -> list[str]:
     """``clipped[q]``: frame q's sample pixels clipped in every exposure, of ``on_sample``. InputError when a
     frame is clipped entirely (every frame: the capture), the warnings above the thresholds."""
@@ -299,11 +299,11 @@ def check_clipping(clipped: list[int], on_sample: int, manifest: dict[str, Any],
         return []
     shares = np.asarray(clipped, float) / on_sample
     full = np.flatnonzero(shares >= 1.0)
-    frames = manifest["frames"]
+    frames = capture["frames"]
     if len(full) == len(frames):
         raise InputError(path, f"every exposure of every frame is clipped (all {on_sample} pixels that see the "
                                f"sample, in all {len(frames)} frames, at or above the clip level of the manifest's "
-                               f"saturation {manifest.get('saturation')}): nothing was measured; shorten the "
+                               f"saturation {capture.get('saturation')}): nothing was measured; shorten the "
                                "exposures or check 'saturation'")
     if len(full):
         q = int(full[0])

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from . import manifest as manifest_io
+from . import manifest
 from .errors import InputError
 from .fileio import write_exr
 from .outputs import output_folder
@@ -159,10 +159,10 @@ def _checked_ward(path: Path, meta: dict):
     return model
 
 
-def input_folders(model_dir: str | Path, manifest: dict[str, Any]) -> list[Path]:
+def input_folders(model_dir: str | Path, capture: dict[str, Any]) -> list[Path]:
     """The folders predict reads: the model, the capture, and every folder holding a frame or truth file."""
-    folders = {Path(model_dir), Path(manifest["_dir"])}
-    for frame in manifest["frames"]:
+    folders = {Path(model_dir), Path(capture["_dir"])}
+    for frame in capture["frames"]:
         folders.update(Path(e["file"]).parent for e in frame["exposures"])
         if "radiance" in frame.get("truth", {}):
             folders.add(Path(frame["truth"]["radiance"]).parent)
@@ -205,9 +205,9 @@ def predict(model_dir: str | Path, manifest_path: str | Path, out_dir: str | Pat
     if isinstance(supersample, bool) or not isinstance(supersample, (int, np.integer)) or supersample < 1:
         raise InputError(None, f"supersample must be a positive integer, got {supersample!r}")
     manifest_path = Path(manifest_path)
-    m = manifest_io.load(manifest_path, check_files=False)
+    m = manifest.load(manifest_path, check_files=False)
     model = load_model(model_dir)
-    camera = manifest_io.camera(m)
+    camera = manifest.camera(m)
     try:
         renderer = FrameRenderer(model, camera, supersample)
     except ValueError as exc:
@@ -221,7 +221,7 @@ def predict(model_dir: str | Path, manifest_path: str | Path, out_dir: str | Pat
         (stage / "frames").mkdir()
         for q in tqdm(selected, desc="predict", unit="frame", disable=not progress):
             light = m["frames"][q]["light"]
-            image = _finite_frame(renderer.radiance(manifest_io.light_point(light), light["intensity"]), q,
+            image = _finite_frame(renderer.radiance(manifest.light_point(light), light["intensity"]), q,
                                   manifest_path, model_dir)
             name = f"frames/{q:04d}.exr"
             write_exr(stage / name, {"RGB": image}, {"exposure_time": 1.0, "quantity": "predicted radiance I",
@@ -231,5 +231,5 @@ def predict(model_dir: str | Path, manifest_path: str | Path, out_dir: str | Pat
                "frames": out_frames,
                "prediction": {"model": str(Path(model_dir).resolve()), "manifest": str(manifest_path.resolve()),
                               "supersample": int(supersample)}}
-        manifest_io.save(stage / "manifest.json", out)
+        manifest.save(stage / "manifest.json", out)
     return out

@@ -43,7 +43,7 @@ import numpy as np
 
 from .errors import InputError
 from .hdr import SensorModel
-from .transfer import Transfer, table as transfer_table
+from .transfer import Transfer, table
 
 LEVELS = 256
 
@@ -79,7 +79,7 @@ class Response:
         """The response of a declared transfer function and black level (:func:`facetsynth.transfer.table`:
         ``max(0, L - b) / (1 - b)``, so code 255 is 1 and the codes at or below the black level are 0), the
         same in every channel."""
-        lut = transfer_table(transfer, black_level)
+        lut = table(transfer, black_level)
         return cls(np.repeat(lut[:, None], 3, axis=1), ("transfer",) * 3)
 
     def linearize(self, codes: np.ndarray) -> np.ndarray:

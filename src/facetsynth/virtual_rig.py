@@ -28,7 +28,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import yaml
 
-from . import manifest as manifest_io
+from . import manifest
 from .camera import Camera
 from .fileio import atomic_dir, read_yaml, write_exr, write_json
 from .frames import map_frames
@@ -323,7 +323,7 @@ def capture(scene_path: str | Path, rig: VirtualRig, out_dir: str | Path, seed: 
 
             frames = map_frames(expose_frame, scan(), threads, "capture", total=len(plan))
             driver.leds_off()
-        manifest_io.save(staging / "manifest.json", {
+        manifest.save(staging / "manifest.json", {
             "version": 1, "units": "m",
             "sample": {"width": cam.scene.size[0], "height": cam.scene.size[1]},
             "camera": {"width": camera.width, "height": camera.height, "K": camera.K.tolist(),

@@ -5,14 +5,15 @@ import json
 import numpy as np
 
 from facetsynth.cli import main
-from facetsynth.stencil import model as Mo, readers
+from facetsynth.stencil import readers
+from facetsynth.stencil.model import evaluate_utia
 from facetsynth.stencil.export import model_from_json, model_to_json
 from test_stencil_model_fit import synth
 
 
 def test_stencil_fit_json_reports_modes_axes_and_scores(tmp_path, capsys):
     path = tmp_path / "two-thread.bin"
-    readers.write_utia_bin(path, Mo.evaluate_utia(synth((20, 110))))
+    readers.write_utia_bin(path, evaluate_utia(synth((20, 110))))
     assert main(["stencil-fit", str(path), "--json", "--out", str(tmp_path / "fit")]) == 0
     printed = json.loads(capsys.readouterr().out)
     assert printed["n_modes"] == 2

@@ -6,7 +6,7 @@ import re
 import numpy as np
 import pytest
 
-from facetsynth.stencil import grid, model as Mo
+from facetsynth.stencil import grid, model
 from facetsynth.stencil.export import to_brdf_explorer
 
 
@@ -51,14 +51,14 @@ def run_shader(text, L, V_):
 
 def _model(n, retro=False, extended=False):
     cols = [(0.2, 0.3, 0.9), (0.9, 0.2, 0.1), (0.1, 0.8, 0.2)]
-    modes = tuple(Mo.Mode(np.deg2rad(p), w, 0.4, 0.04, 0.05, 1.0, 6.0, c, retro=(retro and i == 1))
+    modes = tuple(model.Mode(np.deg2rad(p), w, 0.4, 0.04, 0.05, 1.0, 6.0, c, retro=(retro and i == 1))
                   for i, (p, w, c) in enumerate(zip((20, 110, 60), (0.75, 0.65, 0.6), cols[:n])))
     # extended: the fit's second lobe, highlight colours, background elevation scaling, Schlick term, Jacobian,
     # the highlight shaped by the dominant mode's stencil
     more = dict(k2=2.0, alpha_s2=8.0, a_s2=0.3, b_s2=0.02, m_s=(1.0, 0.9, 0.8), m_s2=(0.5, 1.0, 1.5),
                 a_r=1.1, b_r=-0.05, f_s=0.3, f_s2=0.1, jacobian=True, stencil_highlight=n > 0) if extended else {}
-    return Mo.StencilModel(modes, tuple([0.3, 0.1][: max(n - 1, 0)]), 0.05,
-                           modes[-1].m if modes else (0.1, 0.1, 0.1), 4.0, 60.0, 0.4, 0.04, **more)
+    return model.StencilModel(modes, tuple([0.3, 0.1][: max(n - 1, 0)]), 0.05,
+                              modes[-1].m if modes else (0.1, 0.1, 0.1), 4.0, 60.0, 0.4, 0.04, **more)
 
 
 def test_shader_structure():
@@ -85,7 +85,7 @@ def test_shader_transliteration_matches_python(n, retro, extended):
     wi = grid.sph_to_dir(np.arccos(rng.uniform(0.05, 1, 25)), rng.uniform(0, 2 * np.pi, 25))
     wo = grid.sph_to_dir(np.arccos(rng.uniform(0.05, 1, 25)), rng.uniform(0, 2 * np.pi, 25))
     wo[:5] = wi[:5] * [-1, -1, 1]  # mirror pairs: the specular term is exercised too
-    ref = Mo.evaluate(m, wi, wo)
+    ref = model.evaluate(m, wi, wo)
     got = np.array([run_shader(text, a, b) for a, b in zip(wi, wo)])
     np.testing.assert_allclose(got, ref, rtol=1e-9, atol=1e-12)
     assert np.ptp(ref) > 0  # a test that can fail: the directions see varying values

@@ -8,7 +8,7 @@ import pytest
 from facetsynth.errors import InputError
 from facetsynth.stencil import grid, readers
 
-from conftest import RGL_DIR as RGL
+from conftest import RGL_DIR
 
 
 def _random_brdf(seed=0):
@@ -91,7 +91,7 @@ def test_rgl_matches_mitsuba_measured():
     rng = np.random.default_rng(0)
     n = 60
     for name in ("paper_white_rgb", "satin_rosaline_rgb", "cg_sunflower_rgb"):
-        path = f"{RGL}/{name}.bsdf"
+        path = f"{RGL_DIR}/{name}.bsdf"
         ours = readers.RGLBRDF(path)
         bsdf = mi.load_dict({"type": "measured", "filename": path})
         wi = grid.sph_to_dir(np.arccos(rng.uniform(0.1, 1, n)), rng.uniform(0, 2 * np.pi, n))
@@ -109,7 +109,7 @@ def test_rgl_matches_mitsuba_measured():
 
 
 def test_rgl_paper_white_level_and_reciprocity():
-    b = readers.read_rgl(f"{RGL}/paper_white_rgb.bsdf")
+    b = readers.read_rgl(f"{RGL_DIR}/paper_white_rgb.bsdf")
     assert b.shape == grid.SHAPE and np.all(np.isfinite(b)) and b.min() >= 0
     # README: near-diffuse, fr about 0.25-0.35 /sr
     assert 0.22 < np.median(b) < 0.36

@@ -37,16 +37,16 @@ from pathlib import Path
 
 import numpy as np
 
-from facetsynth import manifest as manifest_io
+from facetsynth import manifest
 from facetsynth.calibration.rigfile import RigCalibration
 from facetsynth.fileio import read_json, write_json
 from facetsynth.stages import validate
 
 
-def rewritten(manifest: dict, camera: dict, light) -> dict:
-    """A copy of ``manifest`` with ``camera`` (K, R, t, distortion) and each frame's light from
+def rewritten(original: dict, camera: dict, light) -> dict:
+    """A copy of the manifest ``original`` with ``camera`` (K, R, t, distortion) and each frame's light from
     ``light(frame) -> (position, intensity)``."""
-    out = json.loads(json.dumps(manifest))
+    out = json.loads(json.dumps(original))
     out["camera"].update(camera)
     for frame in out["frames"]:
         position, intensity = light(frame)
@@ -57,18 +57,18 @@ def rewritten(manifest: dict, camera: dict, light) -> dict:
 
 def variants(capture: Path, calibration: Path) -> dict[str, dict]:
     """The calibrated and true manifests of a virtual capture with calibration error."""
-    manifest = manifest_io.load(capture / "manifest.json")
+    nominal = manifest.load(capture / "manifest.json")
     truth = read_json(capture / "truth" / "calibration.json")
     cal = RigCalibration.load(calibration)
     c = cal.camera()
-    calibrated = rewritten(manifest, {"K": c.K.tolist(), "R": c.R.tolist(), "t": c.t.tolist(),
-                                      "distortion": np.asarray(c.distortion, float).tolist()},
+    calibrated = rewritten(nominal, {"K": c.K.tolist(), "R": c.R.tolist(), "t": c.t.tolist(),
+                                     "distortion": np.asarray(c.distortion, float).tolist()},
                            lambda f: (cal.light_position(f["led"], f["carriage_steps"]), cal.intensity(f["led"])))
     offset, factor = np.asarray(truth["led_offset_m"]), np.asarray(truth["led_intensity_factor"])
-    true = rewritten(manifest, {"R": truth["camera"]["R"], "t": truth["camera"]["t"]},
+    true = rewritten(nominal, {"R": truth["camera"]["R"], "t": truth["camera"]["t"]},
                      lambda f: (np.asarray(f["light"]["position"]) + offset[f["led"]],
                                 np.asarray(f["light"]["intensity"]) * factor[f["led"]]))
-    return {"calibrated": calibrated, "true": true, "nominal-import": json.loads(json.dumps(manifest))}
+    return {"calibrated": calibrated, "true": true, "nominal-import": json.loads(json.dumps(nominal))}
 
 
 def main() -> None:
@@ -93,14 +93,14 @@ def main() -> None:
         subprocess.run(snake + [f"results/{sample}/validate/metrics.json"] + config, check=True)
 
     names = {}
-    for name, manifest in variants(Path("results") / sample / "capture", Path(args.calibration)).items():
+    for name, variant in variants(Path("results") / sample / "capture", Path(args.calibration)).items():
         names[name] = f"{sample}-{name}" + (args.tag if name == "calibrated" else "")
         folder = Path("imports") / names[name]
         folder.mkdir(parents=True, exist_ok=True)
         path = folder / "manifest.json"
-        clean = json.loads(json.dumps({k: v for k, v in manifest.items() if not k.startswith("_")}))
+        clean = json.loads(json.dumps({k: v for k, v in variant.items() if not k.startswith("_")}))
         if not path.is_file() or read_json(path) != clean:    # unchanged: no re-fit
-            manifest_io.save(path, manifest)
+            manifest.save(path, variant)
         rows.append(f"{names[name]}\timport\t{folder}\t")
     if not args.score_only:
         sheet.write_text("sample\tsource\tpath\trig\n" + "\n".join(rows) + "\n")
@@ -143,7 +143,7 @@ def true_geometry_view(folder: Path, out: Path) -> Path:
     """A held-out view's manifest with the geometry its truth was rendered with (the true camera, each frame's
     true light and intensity) in place of the nominal one, its truth/calibration dropped (the manifest is the
     truth now): predictions from it score the fitted BRDF alone, not the held-out view's own calibration."""
-    m = manifest_io.load(folder / "manifest.json", check_files=False)
+    m = manifest.load(folder / "manifest.json", check_files=False)
     truth = read_json(folder / "truth" / "calibration.json")
     offset, factor = np.asarray(truth["led_offset_m"]), np.asarray(truth["led_intensity_factor"])
     new = rewritten({k: v for k, v in m.items() if not k.startswith("_")},
@@ -152,7 +152,7 @@ def true_geometry_view(folder: Path, out: Path) -> Path:
                                np.asarray(f["light"]["intensity"]) * factor[f["led"]]))
     new["truth"].pop("calibration", None)
     out.mkdir(parents=True, exist_ok=True)
-    manifest_io.save(out / "manifest.json", new)
+    manifest.save(out / "manifest.json", new)
     return out
 
 if __name__ == "__main__":

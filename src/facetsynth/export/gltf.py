@@ -334,12 +334,12 @@ def gltf_document(material: GltfMaterial, factors: dict[str, Any], bin_length: i
                   source: str) -> dict[str, Any]:
     """The glTF JSON (built with pygltflib's classes, so its field names are the library's); a normalTexture
     when the material has shading normals."""
-    import pygltflib as g
+    import pygltflib
     names = list(IMAGES) + (["normal"] if getattr(material, "normal", None) is not None else [])
     tex = {name: i for i, name in enumerate(names)}
-    pbr = g.PbrMetallicRoughness(baseColorTexture=g.TextureInfo(index=tex["base_color"]), metallicFactor=0.0,
-                                 roughnessFactor=1.0,
-                                 metallicRoughnessTexture=g.TextureInfo(index=tex["metallic_roughness"]))
+    pbr = pygltflib.PbrMetallicRoughness(
+        baseColorTexture=pygltflib.TextureInfo(index=tex["base_color"]), metallicFactor=0.0, roughnessFactor=1.0,
+        metallicRoughnessTexture=pygltflib.TextureInfo(index=tex["metallic_roughness"]))
     plane = material.plane
     extensions = {
         "KHR_materials_anisotropy": {"anisotropyStrength": 1.0, "anisotropyRotation": 0.0,
@@ -349,7 +349,8 @@ def gltf_document(material: GltfMaterial, factors: dict[str, Any], bin_length: i
                                    "specularColorTexture": {"index": tex["specular"]}},
         "KHR_materials_ior": {"ior": factors["ior"]},
     }
-    normal_texture = (g.NormalMaterialTexture(index=tex["normal"], scale=factors.get("normalScale", 1.0))
+    normal_texture = (pygltflib.NormalMaterialTexture(index=tex["normal"],
+                                                      scale=factors.get("normalScale", 1.0))
                       if "normal" in tex else None)
     extras = {"facetsynth": {"source": source, "plane_grid": {"width": plane.width, "height": plane.height,
                                                               "cols": plane.cols, "rows": plane.rows},
@@ -358,21 +359,22 @@ def gltf_document(material: GltfMaterial, factors: dict[str, Any], bin_length: i
                                       "normalTexture (if any): tangent-space (X, Y, Z) = the plane's (x, y, z)",
                              "model": "facetsynth.ggx (glTF 2.0 Appendix B + KHR_materials_anisotropy, "
                                       "_specular, _ior), fitted per point to paper 002 eq. 6"}}
-    doc = g.GLTF2(
-        asset=g.Asset(version="2.0", generator="facetsynth export gltf"),
-        extensionsUsed=list(EXTENSIONS), scene=0, scenes=[g.Scene(nodes=[0])],
-        nodes=[g.Node(mesh=0, name="sample")],
-        meshes=[g.Mesh(name="sample", primitives=[g.Primitive(
-            attributes=g.Attributes(POSITION=0, NORMAL=1, TANGENT=2, TEXCOORD_0=3), indices=4, material=0)])],
-        materials=[g.Material(name="facetsynth", pbrMetallicRoughness=pbr, normalTexture=normal_texture,
-                              extensions=extensions, extras=extras)],
-        textures=[g.Texture(sampler=0, source=i) for i in range(len(names))],
-        samplers=[g.Sampler(magFilter=LINEAR, minFilter=LINEAR_MIPMAP_LINEAR, wrapS=CLAMP_TO_EDGE,
-                            wrapT=CLAMP_TO_EDGE)],
-        images=[g.Image(uri=ALL_IMAGES[n], mimeType="image/png", name=n) for n in names],
-        buffers=[g.Buffer(uri=BIN_NAME, byteLength=bin_length)],
-        bufferViews=[g.BufferView(**v) for v in quad["bufferViews"]],
-        accessors=[g.Accessor(**a) for a in quad["accessors"]])
+    doc = pygltflib.GLTF2(
+        asset=pygltflib.Asset(version="2.0", generator="facetsynth export gltf"),
+        extensionsUsed=list(EXTENSIONS), scene=0, scenes=[pygltflib.Scene(nodes=[0])],
+        nodes=[pygltflib.Node(mesh=0, name="sample")],
+        meshes=[pygltflib.Mesh(name="sample", primitives=[pygltflib.Primitive(
+            attributes=pygltflib.Attributes(POSITION=0, NORMAL=1, TANGENT=2, TEXCOORD_0=3), indices=4,
+            material=0)])],
+        materials=[pygltflib.Material(name="facetsynth", pbrMetallicRoughness=pbr, normalTexture=normal_texture,
+                                      extensions=extensions, extras=extras)],
+        textures=[pygltflib.Texture(sampler=0, source=i) for i in range(len(names))],
+        samplers=[pygltflib.Sampler(magFilter=LINEAR, minFilter=LINEAR_MIPMAP_LINEAR, wrapS=CLAMP_TO_EDGE,
+                                    wrapT=CLAMP_TO_EDGE)],
+        images=[pygltflib.Image(uri=ALL_IMAGES[n], mimeType="image/png", name=n) for n in names],
+        buffers=[pygltflib.Buffer(uri=BIN_NAME, byteLength=bin_length)],
+        bufferViews=[pygltflib.BufferView(**v) for v in quad["bufferViews"]],
+        accessors=[pygltflib.Accessor(**a) for a in quad["accessors"]])
     return json.loads(doc.to_json())
 
 

@@ -32,9 +32,9 @@ import os
 import re
 import shutil
 import threading
-import time as clock
 from dataclasses import dataclass
 from pathlib import Path
+from time import monotonic, sleep
 from typing import Any, Callable, Mapping, Protocol, Sequence, runtime_checkable
 
 import numpy as np
@@ -408,10 +408,10 @@ class WatchFolderCamera:
     def _next_file(self, k: int, n: int, requested: float) -> Path:
         """The oldest new matching file whose size and mtime stayed the same for ``settle_s``."""
         s = self.settings
-        deadline = clock.monotonic() + s.timeout_s
+        deadline = monotonic() + s.timeout_s
         seen: dict[str, tuple[int, int, float]] = {}     # name -> (size, mtime_ns, since when unchanged)
         while True:
-            now = clock.monotonic()
+            now = monotonic()
             ready = []
             for name in self._candidates():
                 if name in self._taken:
@@ -431,7 +431,7 @@ class WatchFolderCamera:
                 raise CameraError(f"watch folder {self.folder}: no new complete file matching '{self.pattern}' "
                                   f"within {s.timeout_s:g} s (exposure {k + 1} of {n}, {requested:g} s); is the "
                                   "camera's software saving there?")
-            clock.sleep(s.poll_s)
+            sleep(s.poll_s)
 
     def _exposure_time(self, source: Path, requested: float) -> float:
         exif = exif_exposure_time(source)

@@ -34,7 +34,7 @@ from typing import Any, Callable
 import numpy as np
 from tqdm import tqdm
 
-from .. import manifest as manifest_io
+from .. import manifest
 from ..errors import InputError
 from ..fileio import atomic_dir, read_yaml
 from ..validation import validate
@@ -117,8 +117,8 @@ def open_camera(rig: RigDescription, driver: RigController):
         return VirtualCamera(desc["scene"], VirtualRig.load(desc["rig"]), seed=int(desc.get("seed", 0)),
                              noise=bool(desc.get("noise", True)),
                              hardware=lambda: (driver.position(), driver.lit_led()))
-    from .cameras import open_camera as open_backend
-    return open_backend(desc)
+    from . import cameras
+    return cameras.open_camera(desc)
 
 
 class Journal:
@@ -183,9 +183,9 @@ def capture(rig: RigDescription, out_dir: str | Path, port: str | None = None,
                 driver.leds_off()
             camera.close()
         saved = journal.saved()
-        manifest = _manifest(rig, calibration, info, plan, saved, truth)
-        manifest_io.save(staging / "manifest.json", manifest)
-    return manifest
+        captured = _manifest(rig, calibration, info, plan, saved, truth)
+        manifest.save(staging / "manifest.json", captured)
+    return captured
 
 
 def check(rig: RigDescription, port: str | None = None, test_steps: int = 200) -> list[str]:
@@ -273,7 +273,7 @@ def _manifest(rig, calibration, info, plan, saved, truth) -> dict:
                                  "intensity": calibration.intensity(led).tolist()},
                        "exposures": entry["exposures"], "led": led, "carriage_steps": steps})
     noise = rig.desc.get("noise", {})
-    manifest = {
+    captured = {
         "version": 1, "units": "m",
         "sample": dict(rig.desc["sample"]),
         "camera": {"width": camera.width, "height": camera.height, "K": camera.K.tolist(), "R": camera.R.tolist(),
@@ -284,5 +284,5 @@ def _manifest(rig, calibration, info, plan, saved, truth) -> dict:
         "rig": {"name": rig.name, "firmware": info.firmware, "calibration": str(rig.calibration)},
     }
     if truth:
-        manifest["truth"] = truth
-    return manifest
+        captured["truth"] = truth
+    return captured

@@ -45,7 +45,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..fileio import read_yaml
-from ..transfer import parse as parse_transfer
+from .. import transfer
 
 HORIZON_TOLERANCE = 0.05
 """Lights calibrated this far below the horizon (z of the unit direction, about 3 deg) are taken as
@@ -159,17 +159,17 @@ def options(path: str | Path, n_lights: int) -> dict[str, Any]:
                                f"and row0 < row1, got {str(reference)!r:.60}")
     if "transfer" in found:
         try:
-            parse_transfer(found["transfer"])
+            transfer.parse(found["transfer"])
         except (TypeError, ValueError) as exc:
             raise InputError(side, f"transfer: {exc}") from None
     return found
 
 
-def _plane_box(camera: dict[str, Any], box: list[int]) -> dict[str, list[float]]:
+def _plane_box(cam: dict[str, Any], box: list[int]) -> dict[str, list[float]]:
     """A box of photo pixels [col0, row0, col1, row1] (pixel edges: col0 - 0.5 .. col1 - 0.5) as the box it covers
     on the sample plane, {"x": [x0, x1], "y": [y0, y1]} in metres (the camera's plane homography, inverted)."""
-    from ..manifest import camera as manifest_camera
-    H = np.linalg.inv(manifest_camera({"camera": camera}).plane_homography())
+    from ..manifest import camera
+    H = np.linalg.inv(camera({"camera": cam}).plane_homography())
     corners = np.array([[box[0] - 0.5, box[1] - 0.5, 1.0], [box[2] - 0.5, box[3] - 0.5, 1.0]]) @ H.T
     xy = corners[:, :2] / corners[:, 2:]
     return {"x": sorted(xy[:, 0].tolist()), "y": sorted(xy[:, 1].tolist())}

@@ -9,14 +9,14 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import manifest as manifest_io
-from .. import plausibility
+from .. import manifest, plausibility, virtual_rig
 from ..errors import InputError
 from ..fileio import atomic_dir, read_exposure
 from ..frames import map_frames
 from ..hdr import SensorModel
-from ..rig.session import RigDescription, capture as rig_capture
-from ..virtual_rig import VirtualRig, capture as virtual_capture
+from ..rig import session
+from ..rig.session import RigDescription
+from ..virtual_rig import VirtualRig
 from .common import RuleFiles, StageSettings
 
 log = logging.getLogger(__name__)
@@ -61,20 +61,20 @@ def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threa
     if settings.source == "virtual":
         log.info("virtual capture of scene %s turned by %g deg with rig %s (seed %d, noise %s)", path,
                  settings.rotation_deg, settings.rig, settings.seed, settings.noise)
-        virtual_capture(path, VirtualRig.load(settings.rig), out_dir, seed=settings.seed, noise=settings.noise,
-                        rotation_deg=settings.rotation_deg, threads=threads)
+        virtual_rig.capture(path, VirtualRig.load(settings.rig), out_dir, seed=settings.seed, noise=settings.noise,
+                            rotation_deg=settings.rotation_deg, threads=threads)
     elif settings.source in ("import", "lp"):
         import_capture(path, out_dir)
     else:
-        rig_capture(RigDescription.load(path), out_dir)
+        session.capture(RigDescription.load(path), out_dir)
 
 
 def check_capture(path: str | Path) -> dict:
     """Validate a capture folder (:func:`inspect_capture`), log its warnings, return the loaded manifest."""
-    manifest, warnings = inspect_capture(path)
+    capture, warnings = inspect_capture(path)
     for warning in warnings:
         log.warning("%s: %s", path, warning)
-    return manifest
+    return capture
 
 
 def inspect_capture(path: str | Path) -> tuple[dict, list[str]]:
@@ -93,29 +93,29 @@ def inspect_capture(path: str | Path) -> tuple[dict, list[str]]:
     against the camera's view of it and the lights' distances against the sample, before any pixel is
     read; a virtual capture's ``truth/scene``; clipping per frame and over the capture.
     """
-    manifest = manifest_io.load(path)
+    capture = manifest.load(path)
     source = Path(path) / "manifest.json" if Path(path).is_dir() else Path(path)
-    warnings = plausibility.check_geometry(manifest, source) + plausibility.duplicate_files(manifest)
-    plausibility.check_truth_scene(manifest, source)
-    on_sample = plausibility.sample_pixels(manifest)
-    shape = (manifest["camera"]["height"], manifest["camera"]["width"], 3)
-    floor = SensorModel(read_sigma=manifest.get("noise", {}).get("read_sigma", 0.0)).noise_floor
+    warnings = plausibility.check_geometry(capture, source) + plausibility.duplicate_files(capture)
+    plausibility.check_truth_scene(capture, source)
+    on_sample = plausibility.sample_pixels(capture)
+    shape = (capture["camera"]["height"], capture["camera"]["width"], 3)
+    floor = SensorModel(read_sigma=capture.get("noise", {}).get("read_sigma", 0.0)).noise_floor
 
     def read_frame(frame: dict) -> tuple[list[ExposureStats], int]:
         """A frame's exposures' stats, and its sample pixels clipped in every exposure."""
         stats, clipped = [], None
         for e in frame["exposures"]:
-            s, c = _read_exposure(e["file"], shape, floor, manifest)
+            s, c = _read_exposure(e["file"], shape, floor, capture)
             stats.append(s)
             clipped = c if clipped is None else clipped & c
         return stats, int(np.count_nonzero(clipped.any(axis=-1) & on_sample))
 
-    read = map_frames(read_frame, manifest["frames"], CHECK_THREADS, "check")
+    read = map_frames(read_frame, capture["frames"], CHECK_THREADS, "check")
     per_frame = [stats for stats, _ in read]
     exposures = [stats for frame in per_frame for stats in frame]
     _refuse_nonfinite(exposures)
-    _refuse_mixed_kinds(exposures, manifest["_dir"])
-    warnings += plausibility.check_clipping([c for _, c in read], int(on_sample.sum()), manifest, source)
+    _refuse_mixed_kinds(exposures, capture["_dir"])
+    warnings += plausibility.check_clipping([c for _, c in read], int(on_sample.sum()), capture, source)
     negative = [s for s in exposures if s.negative]
     if negative:
         warnings.append(f"{sum(s.negative for s in negative)} negative value(s) in {len(negative)} of "
@@ -127,10 +127,10 @@ def inspect_capture(path: str | Path) -> tuple[dict, list[str]]:
     if dark:
         warnings.append(f"{len(dark)} of {len(per_frame)} frame(s) are dark, no value above the noise floor "
                         f"({floor:g}) in any exposure (first: frame {dark[0]}, "
-                        f"{manifest['frames'][dark[0]]['exposures'][0]['file']})")
-    if manifest.get("assumed"):
-        warnings.append(assumed_note(manifest["assumed"], manifest.get("source", {}).get("lp")))
-    return manifest, warnings
+                        f"{capture['frames'][dark[0]]['exposures'][0]['file']})")
+    if capture.get("assumed"):
+        warnings.append(assumed_note(capture["assumed"], capture.get("source", {}).get("lp")))
+    return capture, warnings
 
 
 def assumed_note(assumed: list[str], lp: str | None) -> str:
@@ -156,7 +156,7 @@ class ExposureStats:
 
 
 def _read_exposure(file: str, shape: tuple[int, int, int], floor: float,
-                   manifest: dict) -> tuple[ExposureStats, np.ndarray]:
+                   capture: dict) -> tuple[ExposureStats, np.ndarray]:
     """Read one exposure as ``hdr`` does; count its non-finite pixels and negative values, and whether some
     value is above the noise ``floor``; with its (H, W, 3) clipped values (:func:`plausibility.clip_level`).
     A file of another size than the camera's is refused from its header, before its pixels are read."""
@@ -169,7 +169,7 @@ def _read_exposure(file: str, shape: tuple[int, int, int], floor: float,
     if rgb.shape != shape:
         raise InputError(file, f"frame is {rgb.shape[1]}x{rgb.shape[0]}, the manifest's camera is "
                                f"{shape[1]}x{shape[0]}")
-    return _stats(file, rgb, bits, floor), ~(rgb < plausibility.clip_level(manifest, bits))
+    return _stats(file, rgb, bits, floor), ~(rgb < plausibility.clip_level(capture, bits))
 
 
 def _stats(file: str, rgb: np.ndarray, bits: int | None, floor: float) -> ExposureStats:
@@ -207,7 +207,7 @@ def _refuse_nonfinite(exposures: list[ExposureStats]) -> None:
 
 def import_capture(path: str | Path, out_dir: str | Path) -> None:
     """Validate a capture made elsewhere and publish its manifest with absolute frame paths."""
-    manifest = check_capture(path)
-    log.info("imported %d frames from %s", len(manifest["frames"]), path)
+    capture = check_capture(path)
+    log.info("imported %d frames from %s", len(capture["frames"]), path)
     with atomic_dir(out_dir) as staging:
-        manifest_io.save(staging / "manifest.json", manifest)
+        manifest.save(staging / "manifest.json", capture)

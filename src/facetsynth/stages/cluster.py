@@ -18,7 +18,7 @@ import numpy as np
 from tqdm import tqdm
 
 from .. import cluster
-from .. import partial_ndf as pndf
+from .. import partial_ndf
 from ..fileio import NpyRows, read_exr, read_json, write_json, write_npy
 from ..tables import SupportTable
 from ..frames import imap
@@ -349,10 +349,11 @@ def pooled_representatives(capture: RectifiedCapture, visible: np.ndarray, resul
                                                np.asarray(d_all[own], float), np.asarray(w_all[own], float), grid,
                                                max_shift=grid.n_phi // 4)
         turning = np.median(gain) < TURN_GAIN and np.std(turn) > TURN_SPREAD * grid.d_phi
-        pooled = pndf.pooled_fit(np.asarray(specular[members], float).mean(axis=-1), np.asarray(valid[members]),
-                                 capture.light_directions(members)[0], views[members], w_members,
-                                 views[own], grid, settings.shadowing, settings.grazing_deg, settings.tolerance,
-                                 settings.max_iterations, rotation=turn if turning else None)
+        pooled = partial_ndf.pooled_fit(np.asarray(specular[members], float).mean(axis=-1),
+                                        np.asarray(valid[members]), capture.light_directions(members)[0],
+                                        views[members], w_members, views[own], grid, settings.shadowing,
+                                        settings.grazing_deg, settings.tolerance, settings.max_iterations,
+                                        rotation=turn if turning else None)
         ndf[c], conf[c], counts[c] = pooled.ndf[0], pooled.confidence[0], members.size
     return Pooled(ndf, conf, counts)
 

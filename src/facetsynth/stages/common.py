@@ -9,7 +9,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from .. import manifest as manifest_io
+from .. import manifest
 from ..errors import InputError
 from ..fileio import read_json
 from ..normals import shading_frames, to_local
@@ -82,8 +82,8 @@ class RectifiedCapture:
         truth = g.get("truth", {}).get("scene")
         return cls(folder=path.parent, grid=PlaneGrid.from_dict(g["grid"]),
                    visible=np.asarray(g["visible"], bool).ravel(),
-                   lights=manifest_io.lights(g["frames"]),
-                   light_intensities=manifest_io.light_intensities(g["frames"]),
+                   lights=manifest.lights(g["frames"]),
+                   light_intensities=manifest.light_intensities(g["frames"]),
                    view_point=np.asarray(g["view_point"], float),
                    frame_files=[path.parent / f["file"] for f in g["frames"]],
                    truth_scene=None if truth is None else (path.parent / truth).resolve(),

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from .. import manifest as manifest_io
+from .. import manifest
 from ..export.gltf import GLTF_NAME, export_gltf, read_gltf
 from ..fileio import read_json, read_rgb, write_json
 from ..predict import FrameRenderer
@@ -60,14 +60,14 @@ class Settings(StageSettings):
 
 def score_view(model, folder: str | Path, supersample: int = 1) -> dict[str, Any]:
     """The held-out scores of ``model`` on the capture in ``folder`` (validate's normalisation)."""
-    m = manifest_io.load(Path(folder) / "manifest.json", check_files=False)
+    m = manifest.load(Path(folder) / "manifest.json", check_files=False)
     truth = np.stack([read_rgb(f["truth"]["radiance"]) for f in m["frames"]]).astype(float)
-    renderer = FrameRenderer(model, manifest_io.camera(m))
+    renderer = FrameRenderer(model, manifest.camera(m))
     mask = renderer.sample_mask
-    prediction = np.stack([renderer.radiance(manifest_io.light_point(f["light"]), f["light"]["intensity"])
+    prediction = np.stack([renderer.radiance(manifest.light_point(f["light"]), f["light"]["intensity"])
                            for f in m["frames"]]).astype(float)
     diffuse, specular_mask = None, None
-    if manifest_io.has_truth(m):
+    if manifest.has_truth(m):
         diffuse, analytic, _ = diffuse_truth(Scene.load(m["truth"]["scene"]), *true_rig(m), supersample)
         specular_mask = mask & analytic
     return trusted_scores(truth, prediction, mask, diffuse, specular_mask)

@@ -27,8 +27,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .. import manifest as manifest_io
-from .. import plausibility
+from .. import manifest, plausibility
 from ..errors import InputError
 from ..fileio import atomic_dir, exposure_bits, file_key, read_codes, read_exr, read_rgb, write_exr, write_json
 from ..frames import map_frames
@@ -36,7 +35,7 @@ from ..hdr import SensorModel, merge_exposures
 from ..lightplane import LightTriangulation
 from ..metrics import relative_errors
 from ..response import Response, ResponseSettings, recover_response
-from ..transfer import Transfer, parse as parse_transfer
+from ..transfer import Transfer, parse
 from .common import RuleFiles, StageSettings, flag_degenerate
 
 log = logging.getLogger(__name__)
@@ -109,38 +108,38 @@ def load(inputs: Inputs, settings: Settings, response_settings: ResponseSettings
     checks of ``facetsynth check``, :mod:`facetsynth.plausibility`, for a capture that skipped it: refused
     before it becomes a model, its warnings kept for the metrics), and the sensor model it is merged with
     (:func:`sensor_model`)."""
-    manifest = manifest_io.load(inputs.capture)
-    path = Path(manifest["_dir"]) / "manifest.json"
-    _check_lights(manifest, path)
-    warnings = plausibility.check_geometry(manifest, path) + plausibility.duplicate_files(manifest)
-    plausibility.check_truth_scene(manifest, path)
-    on_sample = plausibility.sample_pixels(manifest)
-    shape = (manifest["camera"]["height"], manifest["camera"]["width"], 3)
-    sensor, response, transfer, black_level = sensor_model(manifest, path, shape, settings, response_settings)
-    return Capture(manifest, path, warnings, on_sample, shape, sensor, response, transfer, black_level)
+    capture = manifest.load(inputs.capture)
+    path = Path(capture["_dir"]) / "manifest.json"
+    _check_lights(capture, path)
+    warnings = plausibility.check_geometry(capture, path) + plausibility.duplicate_files(capture)
+    plausibility.check_truth_scene(capture, path)
+    on_sample = plausibility.sample_pixels(capture)
+    shape = (capture["camera"]["height"], capture["camera"]["width"], 3)
+    sensor, response, transfer, black_level = sensor_model(capture, path, shape, settings, response_settings)
+    return Capture(capture, path, warnings, on_sample, shape, sensor, response, transfer, black_level)
 
 
-def sensor_model(manifest: dict, path: Path, shape: tuple[int, int, int], settings: Settings,
+def sensor_model(capture: dict, path: Path, shape: tuple[int, int, int], settings: Settings,
                  response_settings: ResponseSettings) -> tuple[SensorModel, Response | None, Transfer | None, float]:
     """The sensor model of the merge, the 8-bit exposures' response (None for EXR), their declared transfer
     (None: the response recovered from the brackets) and black level. EXR: the manifest's ``saturation`` and
     ``noise``; 8-bit: the response's own model (module docstring). A transfer on EXR exposures is an InputError."""
-    noise = manifest.get("noise", {})
-    sensor = SensorModel(saturation=manifest.get("saturation"), read_sigma=noise.get("read_sigma", 0.0),
+    noise = capture.get("noise", {})
+    sensor = SensorModel(saturation=capture.get("saturation"), read_sigma=noise.get("read_sigma", 0.0),
                          shot_gain=noise.get("shot_gain", 0.0), floor_sigmas=settings.floor_sigmas,
                          saturation_margin=settings.saturation_margin)
-    transfer, black_level = _declared_transfer(manifest, path)
-    if not _eight_bit(manifest, path):
+    transfer, black_level = _declared_transfer(capture, path)
+    if not _eight_bit(capture, path):
         if transfer is not None:
             raise InputError(path, f'"transfer" ({transfer.describe()}) applies to 8-bit exposures only; '
                                    f"these are EXR (linear exposure values, e.g. "
-                                   f"{manifest['frames'][0]['exposures'][0]['file']}): drop the key")
+                                   f"{capture['frames'][0]['exposures'][0]['file']}): drop the key")
         return sensor, None, None, black_level
     if transfer is not None:
         response = Response.from_transfer(transfer, black_level)
         log.info("8-bit exposures: declared transfer %s, black level %g", transfer.describe(), black_level)
     else:
-        response = _recover_response(manifest, shape, path, response_settings)
+        response = _recover_response(capture, shape, path, response_settings)
         log.info("8-bit exposures: camera response recovered (Debevec-Malik 1997; scale from %s)",
                  ", ".join(response.scale_from))
     return response.sensor_model(settings.floor_sigmas), response, transfer, black_level
@@ -191,19 +190,19 @@ def merge_frame(capture: Capture, q: int, frame: dict, staging: Path) -> Merged:
 
 
 # ---------------------------------------------------------------------------- write
-def write_manifest(manifest: dict, frames_dir: Path, manifest_out: Path) -> None:
-    """The HDR manifest: the capture's ``manifest`` with the merged frames in ``frames_dir`` (one exposure of
-    time 1 each, no clipping, no noise; a virtual capture's with their true radiance), its file names relative
-    to ``manifest_out``'s folder. The merged frames are linear EXR: the 8-bit exposures' transfer and black
+def write_manifest(capture: dict, frames_dir: Path, manifest_out: Path) -> None:
+    """The HDR manifest: the capture's manifest ``capture`` with the merged frames in ``frames_dir`` (one
+    exposure of time 1 each, no clipping, no noise; a virtual capture's with their true radiance), its file names
+    relative to ``manifest_out``'s folder. The merged frames are linear EXR: the 8-bit exposures' transfer and black
     level do not apply to them."""
-    hdr_manifest = {**{k: v for k, v in manifest.items() if k not in ("frames", "_dir", "transfer", "black_level")},
+    hdr_manifest = {**{k: v for k, v in capture.items() if k not in ("frames", "_dir", "transfer", "black_level")},
                     "saturation": None}
     hdr_manifest["frames"] = [_merged_frame(q, frame, frames_dir, manifest_out)
-                              for q, frame in enumerate(manifest["frames"])]
+                              for q, frame in enumerate(capture["frames"])]
     hdr_manifest["noise"] = {"read_sigma": 0.0, "shot_gain": 0.0}
-    if "scene" in manifest.get("truth", {}):
-        hdr_manifest["truth"] = {"scene": os.path.relpath(manifest["truth"]["scene"], manifest_out.parent)}
-    manifest_io.save(manifest_out, hdr_manifest)
+    if "scene" in capture.get("truth", {}):
+        hdr_manifest["truth"] = {"scene": os.path.relpath(capture["truth"]["scene"], manifest_out.parent)}
+    manifest.save(manifest_out, hdr_manifest)
 
 
 def _merged_frame(q: int, frame: dict, frames_dir: Path, manifest_out: Path) -> dict:
@@ -218,7 +217,7 @@ def merge_metrics(capture: Capture, merged: list[Merged], warnings: list[str]) -
     """The merge's figures of hdr/metrics.json (all but ``ground_truth`` and the truth's): frames, saturated
     pixels, negative values, dark frames (``degenerate``), the warnings (logged), and the 8-bit exposures'
     response."""
-    manifest, path = capture.manifest, capture.path
+    frames, path = capture.manifest["frames"], capture.path
     negatives = Negatives.total([m.negatives for m in merged])
     dark = [q for q, m in enumerate(merged) if m.dark]
     metrics = {"frames": len(merged), "saturated_pixels": sum(m.saturated for m in merged),
@@ -229,7 +228,7 @@ def merge_metrics(capture: Capture, merged: list[Merged], warnings: list[str]) -
             log.warning("%s: %s", path, warning)
     if dark:
         flag_degenerate(metrics, f"{len(dark)} of {len(merged)} frames are dark (no pixel above the noise floor; "
-                                 f"the first: frame {dark[0]}, {manifest['frames'][dark[0]]['exposures'][0]['file']}): "
+                                 f"the first: frame {dark[0]}, {frames[dark[0]]['exposures'][0]['file']}): "
                                  "the fit takes them as measurements of black reflectance in those light "
                                  "directions, which pulls the NDF and ks down there; if those lights did not fire, "
                                  "drop their frames from the manifest (or the .lp) and re-run from hdr", log)
@@ -286,7 +285,7 @@ def _check_lights(capture: dict, manifest_path: Path) -> None:
     (:class:`facetsynth.lightplane.LightTriangulation`, resample): lights that span no area (fewer than 3,
     or all on one line) are an error here, before any frame is merged."""
     try:
-        LightTriangulation.from_lights(manifest_io.lights(capture["frames"]))
+        LightTriangulation.from_lights(manifest.lights(capture["frames"]))
     except ValueError as exc:
         raise InputError(manifest_path, f"too few lights for the method: {exc}; capture under lights spread over "
                                         "a plane above the sample (the paper: 20 x 24 = 480)") from None
@@ -365,7 +364,7 @@ def _declared_transfer(capture: dict, manifest_path: Path) -> tuple[Transfer | N
     if not 0.0 <= black_level < 1.0:
         raise InputError(manifest_path, f'"black_level" {black_level:g} is not in [0, 1)')
     try:
-        return parse_transfer(capture["transfer"]), black_level
+        return parse(capture["transfer"]), black_level
     except ValueError as exc:
         raise InputError(manifest_path, f'"transfer": {exc}') from None
 

@@ -13,7 +13,8 @@ import logging
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..virtual_rig import VirtualRig, capture as virtual_capture
+from .. import virtual_rig
+from ..virtual_rig import VirtualRig
 from .common import RuleFiles, StageSettings
 from .validate import heldout_rig
 
@@ -50,4 +51,4 @@ def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threa
                        settings.position_every)
     log.info("held-out view theta %.1f deg, phi %+.1f deg (relative), %d lights", settings.theta_deg,
              settings.phi_deg, len(held.scan()))
-    virtual_capture(inputs.scene, held, outputs.capture, seed=settings.seed, noise=False)
+    virtual_rig.capture(inputs.scene, held, outputs.capture, seed=settings.seed, noise=False)

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import params as fit
+from .. import params
 from ..cluster import material_groups
 from ..errors import InputError
 from ..fileio import atomic_dir, read_exr, read_json, read_npy, write_json
@@ -71,8 +71,8 @@ def build_model(ndf: np.ndarray, grid: DirectionGrid, neighbours: np.ndarray, we
     Returns (model with eta = default and ks in the NDF's scale times colour,
     per-point scalar ks (P,), per-representative ks (R,)).
     """
-    normalised, ks_rep = fit.normalise(ndf, grid)
-    area = fit.projected_area(normalised, grid)
+    normalised, ks_rep = params.normalise(ndf, grid)
+    area = params.projected_area(normalised, grid)
     nb = np.asarray(neighbours, np.intp)
     w18 = np.asarray(weights, float)
     if nb.min() < 0 or nb.max() >= len(ks_rep):
@@ -81,7 +81,7 @@ def build_model(ndf: np.ndarray, grid: DirectionGrid, neighbours: np.ndarray, we
     ks_pt = np.where(capture.visible, ks_pt, 0.0)
     kd = np.where(capture.visible[:, None], kd, 0.0)
     model = SVBRDF(plane=capture.grid, grid=grid, kd=kd, ks=ks_pt[:, None] * colour,
-                   eta=np.full(len(ks_pt), fit.ETA_DEFAULT), ndf=normalised.astype(np.float32),
+                   eta=np.full(len(ks_pt), params.ETA_DEFAULT), ndf=normalised.astype(np.float32),
                    area=area.astype(np.float32), neighbours=nb, weights=mix,
                    representatives=representatives, eta_fitted=np.zeros(len(ks_pt), bool), rotation=rotation,
                    normal=capture.normals)
@@ -128,7 +128,7 @@ def grazing_fresnel(model: SVBRDF, ks_pt: np.ndarray, capture: RectifiedCapture,
         c_ref = np.clip(model.mixture(carried, model.grid, index, h) / np.maximum(d_here, 1e-300), 0.0, 1.0)
         lobe = (d_here >= min_ndf_fraction * d_peak) & (model.mixture(covered, model.grid, index, h) >= 0.5)
         rho_s = np.asarray(specular[tile], float)[pp, ff].mean(axis=-1)
-        f_m = fit.measured_fresnel(rho_s, ks_pt[index] * spec)
+        f_m = params.measured_fresnel(rho_s, ks_pt[index] * spec)
         keep = lobe & (spec > 0)
         return {k: v[keep] for k, v in zip(keys, (index, f_m, c, c_ref, rho_s))}
 
@@ -140,7 +140,7 @@ def grazing_fresnel(model: SVBRDF, ks_pt: np.ndarray, capture: RectifiedCapture,
 # Grazing samples (evenly strided) per material that eq. 19 is fitted on: a native-resolution sample has
 # millions, and eta's interval counts representatives, not samples (INTERVAL_UNIT).
 ETA_SAMPLES = 200_000
-# The independent units of eta's interval (fit.eta_profile's n): the samples of one representative share its
+# The independent units of eta's interval (params.eta_profile's n): the samples of one representative share its
 # NDF's error at the grazing half vectors (docs/decisions.md "Metrics a user trusts; eta's interval").
 INTERVAL_UNIT = "representative"
 INTERVAL_METHOD = ("profile likelihood of eq. 19 (linear residuals, as fitted): RSS(eta) on 241 values of "
@@ -188,9 +188,9 @@ def fit_eta(model: SVBRDF, w18: np.ndarray, samples: dict[str, np.ndarray], mate
         sel = np.flatnonzero(sample_material == m)
         sel = sel[:: max(1, int(np.ceil(sel.size / ETA_SAMPLES)))]
         c_ref = None if samples["c_ref"] is None else samples["c_ref"][sel]
-        res = fit.fit_eta(samples["f_m"][sel], samples["c"][sel], c_ref, **kw)
-        interval = fit.eta_profile(samples["f_m"][sel], samples["c"][sel], c_ref, bounds=bounds,
-                                   groups=None if unit_of_sample is None else unit_of_sample[sel])
+        res = params.fit_eta(samples["f_m"][sel], samples["c"][sel], c_ref, **kw)
+        interval = params.eta_profile(samples["f_m"][sel], samples["c"][sel], c_ref, bounds=bounds,
+                                      groups=None if unit_of_sample is None else unit_of_sample[sel])
         record = {"material": int(m), "representatives": np.flatnonzero(material == m).tolist(), "eta": res.eta,
                   "constrained": res.constrained, "std": finite_or_none(res.std), "samples": res.samples,
                   "reason": res.reason,
@@ -202,21 +202,21 @@ def fit_eta(model: SVBRDF, w18: np.ndarray, samples: dict[str, np.ndarray], mate
             record["eta_interval_reason"] = interval.reason
         interval_rep[material == m] = interval.lo, interval.hi
         if res.constrained and interval.open_below and interval.open_above:
-            res = fit.EtaFit(default, False, res.std, res.samples, res.rms,
-                             f"the 95 % interval of eta is all of [{bounds[0]}, {bounds[1]}] ({interval.units} "
-                             "independent unit(s)): the samples do not constrain it")
+            res = params.EtaFit(default, False, res.std, res.samples, res.rms,
+                                f"the 95 % interval of eta is all of [{bounds[0]}, {bounds[1]}] ({interval.units} "
+                                "independent unit(s)): the samples do not constrain it")
             record.update(eta=default, constrained=False, fitted_eta=record["eta"], reason=res.reason)
         if res.constrained:
             halves = []
             for parity in (0, 1):
                 part = samples["point"][sel] % 2 == parity
-                half = fit.fit_eta(samples["f_m"][sel][part], samples["c"][sel][part],
-                                   None if c_ref is None else c_ref[part], **kw)
+                half = params.fit_eta(samples["f_m"][sel][part], samples["c"][sel][part],
+                                      None if c_ref is None else c_ref[part], **kw)
                 halves.append(half.eta if half.constrained else np.nan)
             record["eta_halves"] = [finite_or_none(h) for h in halves]
             if not np.all(np.isfinite(halves)) or abs(halves[0] - halves[1]) > max_split_difference:
-                res = fit.EtaFit(default, False, res.std, res.samples, res.rms,
-                                 f"even/odd points disagree: eta {halves[0]:.3f} / {halves[1]:.3f}")
+                res = params.EtaFit(default, False, res.std, res.samples, res.rms,
+                                    f"even/odd points disagree: eta {halves[0]:.3f} / {halves[1]:.3f}")
                 record.update(eta=default, constrained=False, fitted_eta=record["eta"], reason=res.reason)
         eta_rep[material == m], ok_rep[material == m] = res.eta, res.constrained
         log.info("material %d: eta %.3f (%s), 95 %% interval [%.3f, %.3f] (%d independent units), %s",
@@ -297,9 +297,9 @@ class Outputs(RuleFiles):
 @dataclass(frozen=True)
 class Settings(StageSettings):
     """The stage's knobs: config ``params`` and ``partial_ndf.grazing_deg`` (workflow/schemas/config.schema.yaml)."""
-    eta_min: float = fit.ETA_BOUNDS[0]     # eta is bounded to [eta_min, eta_max] in eq. 19's LM fit
-    eta_max: float = fit.ETA_BOUNDS[1]
-    eta_default: float = fit.ETA_DEFAULT   # kept where the grazing samples do not constrain eta
+    eta_min: float = params.ETA_BOUNDS[0]     # eta is bounded to [eta_min, eta_max] in eq. 19's LM fit
+    eta_max: float = params.ETA_BOUNDS[1]
+    eta_default: float = params.ETA_DEFAULT   # kept where the grazing samples do not constrain eta
     material_tolerance: float = 0.25       # representatives' kd within it: one material, one eta
     min_samples: int = 8                   # grazing samples a material needs for an eta fit
     max_std: float = 0.15                  # a fit with a larger standard error of eta counts as unconstrained

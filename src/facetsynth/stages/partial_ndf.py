@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import partial_ndf as pndf
+from .. import partial_ndf
 from ..coverage import LightFootprint
 from ..fileio import atomic_path, read_json, write_json
 from ..frames import imap
@@ -51,9 +51,10 @@ class Settings(StageSettings):
     tolerance: float = 1e-3               # stop when D changes by less than this (relative)
     max_iterations: int = 30
 
-    def fit(self, slice_: np.ndarray, coverage: np.ndarray, view: np.ndarray, grid: DirectionGrid) -> pndf.PartialNDF:
-        return pndf.fit(slice_, coverage, view, grid, self.shadowing, self.grazing_deg, self.tolerance,
-                        self.max_iterations)
+    def fit(self, slice_: np.ndarray, coverage: np.ndarray, view: np.ndarray,
+            grid: DirectionGrid) -> partial_ndf.PartialNDF:
+        return partial_ndf.fit(slice_, coverage, view, grid, self.shadowing, self.grazing_deg, self.tolerance,
+                               self.max_iterations)
 
 
 def light_coverage(capture: RectifiedCapture, grid: DirectionGrid):
@@ -140,7 +141,7 @@ def _fit_points(capture: RectifiedCapture, grid: DirectionGrid, slice_path, poin
     views = capture.view_directions(settings.per_point_view)
     shape = (n,) + grid.shape
 
-    def fit_tile(local: slice) -> tuple[slice, slice, pndf.PartialNDF]:
+    def fit_tile(local: slice) -> tuple[slice, slice, partial_ndf.PartialNDF]:
         tile = slice(points.start + local.start, points.start + local.stop)
         return local, tile, settings.fit(np.asarray(table[tile], float), coverage(tile), views[tile], grid)
 
@@ -161,7 +162,7 @@ def _metrics(capture: RectifiedCapture, grid: DirectionGrid, fitted: dict, setti
     truth = capture.truth()
     iterations, converged = fitted["iterations"], fitted["converged"]
     metrics = {"ground_truth": truth is not None, "points": capture.n_points, "grid": grid.to_dict(),
-               "method": pndf.shadowing_method(settings.shadowing),
+               "method": partial_ndf.shadowing_method(settings.shadowing),
                "view": "per_point" if settings.per_point_view else "centre",
                "iterations_median": float(np.median(iterations)), "iterations_max": int(iterations.max()),
                "converged_fraction": float(converged.mean()), "grazing_deg": settings.grazing_deg,
@@ -206,7 +207,7 @@ def variant_errors(geometry: str | Path, slice_path: str | Path, grid_path: str 
     result = {}
     for name, (per_point, constrain) in variants.items():
         view = capture.view_directions(per_point, index)
-        fit = pndf.fit(s, c, view, grid, constrain, grazing_deg, tol, max_iter)
+        fit = partial_ndf.fit(s, c, view, grid, constrain, grazing_deg, tol, max_iter)
         result[name] = _median([_errors(fit.ndf, fit.confidence, view, maps, grid)])
     return result
 
@@ -214,8 +215,8 @@ def variant_errors(geometry: str | Path, slice_path: str | Path, grid_path: str 
 def _errors(ndf: np.ndarray, confidence: np.ndarray, view: np.ndarray, maps, grid: DirectionGrid) -> np.ndarray:
     """Relative L2 error of partial NDFs against the recoverable truth over cells with W >= 0.5."""
     true_ndf = maps.take((slice(None), None)).ndf(grid.directions.reshape(1, -1, 3)).reshape(ndf.shape)
-    reference = pndf.recoverable_ndf(maps.ks, maps.eta, true_ndf, view, grid)
-    return pndf.relative_l2(ndf, reference, confidence >= 0.5, grid)
+    reference = partial_ndf.recoverable_ndf(maps.ks, maps.eta, true_ndf, view, grid)
+    return partial_ndf.relative_l2(ndf, reference, confidence >= 0.5, grid)
 
 
 def _median(errors: list[np.ndarray]) -> float | None:

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import manifest as manifest_io
+from .. import manifest
 from ..fileio import atomic_dir, file_key, read_frame, read_rgb, write_exr, write_json
 from ..frames import map_frames
 from ..metrics import marker_centroids, relative_errors
@@ -61,40 +61,40 @@ def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threa
     ``visible`` cells. Cells are square; rows follow from the sample's aspect. Frames are warped on
     ``threads`` threads.
     """
-    capture = manifest_io.load(inputs.manifest)
-    camera = manifest_io.camera(capture)
+    capture = manifest.load(inputs.manifest)
+    camera = manifest.camera(capture)
     grid, rule = plane_grid(capture, camera, settings.resolution, inputs.manifest)
     visible = visible_cells(camera, grid)
     frames = warp_frames(capture, camera, grid, settings.filter, Path(outputs.frames), inputs.manifest, threads)
     write_geometry(capture, camera, grid, visible, frames, Path(outputs.geometry))
-    metrics = {"ground_truth": manifest_io.has_truth(capture), "cols": grid.cols, "rows": grid.rows,
+    metrics = {"ground_truth": manifest.has_truth(capture), "cols": grid.cols, "rows": grid.rows,
                "resolution_rule": rule, "visible_fraction": float(visible.mean())}
     write_json(outputs.metrics, {**metrics, **truth_scores(capture, camera, grid, visible, Path(outputs.frames))})
 
 
-def plane_grid(capture: dict, camera: Camera, resolution: int | str, manifest: Path) -> tuple[PlaneGrid, str]:
+def plane_grid(capture: dict, camera: Camera, resolution: int | str, manifest_path: Path) -> tuple[PlaneGrid, str]:
     """The grid over the sample, ``resolution`` cells across (square cells, rows from the sample's aspect), and
     the rule that chose it: "fixed", or "auto" (as many cells as camera pixels see the sample, logged; a
-    camera that cannot tell is an InputError naming the HDR ``manifest``)."""
+    camera that cannot tell is an InputError naming the HDR ``manifest_path``)."""
     width, height = capture["sample"]["width"], capture["sample"]["height"]
     rule = "fixed"
     if resolution == "auto":
         try:
             resolution, rule = native_resolution(camera, width, height), "auto"
         except InputError as error:
-            raise InputError(manifest, error.problem) from None
+            raise InputError(manifest_path, error.problem) from None
         log.info("resolution auto: %d cells across, as many cells as camera pixels see the sample", resolution)
     return PlaneGrid(width, height, cols=resolution, rows=max(1, int(round(resolution * height / width)))), rule
 
 
-def warp_frames(capture: dict, camera: Camera, grid: PlaneGrid, filtername: str, frames_dir: Path, manifest: Path,
+def warp_frames(capture: dict, camera: Camera, grid: PlaneGrid, filtername: str, frames_dir: Path, manifest_path: Path,
                 threads: int = 1) -> list[dict]:
     """Every HDR frame warped onto ``grid`` from the pixels that see the sample alone (OpenImageIO filter
     ``filtername``, :func:`facetsynth.rectify.warp_sample`; a cell that saw none is marked ``saturated``: no
     valid sample) into ``frames_dir/NNNN.exr`` on ``threads`` threads, published
     whole (:func:`facetsynth.fileio.atomic_dir`: an interrupted run resumes, skipping the frames already
     warped); returns each frame's geometry entry (its file, relative to the geometry's folder, and light)."""
-    key = {"hdr": file_key(manifest), "grid": grid.to_dict(), "filter": filtername, "weights": "sample pixels"}
+    key = {"hdr": file_key(manifest_path), "grid": grid.to_dict(), "filter": filtername, "weights": "sample pixels"}
     on_sample = sample_pixels(camera, capture["sample"]["width"], capture["sample"]["height"])
     with atomic_dir(frames_dir, key) as staging:
 
@@ -122,7 +122,7 @@ def write_geometry(capture: dict, camera: Camera, grid: PlaneGrid, visible: np.n
                 **({"reference_region": capture["reference_region"]} if "reference_region" in capture else {}),
                 "camera": {k: capture["camera"][k] for k in ("width", "height", "K", "R", "t", "projection")
                            if k in capture["camera"]}}
-    if manifest_io.has_truth(capture):
+    if manifest.has_truth(capture):
         geometry["truth"] = {"scene": os.path.relpath(capture["truth"]["scene"], geometry_out.parent)}
     write_json(geometry_out, geometry)
 
@@ -130,7 +130,7 @@ def write_geometry(capture: dict, camera: Camera, grid: PlaneGrid, visible: np.n
 def truth_scores(capture: dict, camera: Camera, grid: PlaneGrid, visible: np.ndarray, frames_dir: Path) -> dict:
     """A virtual capture's rectified frames in ``frames_dir`` against its true scene (:func:`_accuracy`): the
     registration error on the markers and the radiance error, logged; {} for a real capture."""
-    if not manifest_io.has_truth(capture):
+    if not manifest.has_truth(capture):
         return {}
     scores = _accuracy(Scene.load(capture["truth"]["scene"]), grid, camera.view_point, capture, frames_dir, visible)
     log.info("registration error %.3f px (max %.3f), radiance median rel. error %.4f",
@@ -150,7 +150,7 @@ def _accuracy(scene: Scene, grid: PlaneGrid, view: np.ndarray, capture: dict, fr
         light = capture["frames"][q]["light"]
         rectified = read_rgb(frames_dir / f"{q:04d}.exr")
         luminance.append(rectified.mean(axis=-1))
-        truth = radiance(points, maps.rho, manifest_io.light_point(light), light["intensity"], view)
+        truth = radiance(points, maps.rho, manifest.light_point(light), light["intensity"], view)
         errors.append(relative_errors(rectified, truth, interior[..., None] & (truth > 1e-3 * truth.max())))
     background = np.median(np.stack(luminance), axis=0)
     expected = grid.to_pixel(scene.marker_positions[:, 0], scene.marker_positions[:, 1])

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from .. import manifest as manifest_io
+from .. import manifest
 from ..fileio import read_frame, read_json, write_json
 from ..metrics import finite_or_none
 from ..predict import FrameRenderer, load_model
@@ -83,12 +83,12 @@ def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threa
     ``inputs.manifest``, write the metrics and pictures; returns the metrics. The lights' intensities are
     those the fit saw, from ``inputs.geometry`` (``separate/geometry.json``: estimated for a capture that
     stated none) when given, else the manifest's."""
-    m = manifest_io.load(inputs.manifest)
+    m = manifest.load(inputs.manifest)
     nominal = copy.deepcopy(m)      # the per-pixel baselines fit the photos as their users do: nominal lights
     if inputs.geometry is not None:
         for frame, seen in zip(m["frames"], read_json(inputs.geometry)["frames"]):
             frame["light"]["intensity"] = seen["light"]["intensity"]
-    renderer = FrameRenderer(load_model(inputs.svbrdf), manifest_io.camera(m))
+    renderer = FrameRenderer(load_model(inputs.svbrdf), manifest.camera(m))
     sample = renderer.sample_mask
     held = heldout_lights(len(m["frames"]), settings.heldout_every)
     subsets = {"relit": relit_frames(held, settings.relit_every), "heldout": np.flatnonzero(held)}
@@ -125,8 +125,8 @@ def subset_scores(m: dict, renderer: FrameRenderer, name: str, frames: np.ndarra
         exposure = m["frames"][q]["exposures"][0]             # hdr's merged frame (time 1: radiance)
         measured, clipped = read_frame(exposure["file"])
         measured = measured / float(exposure["time"])
-        predicted = renderer.radiance(manifest_io.light_point(light), light["intensity"])
-        diffuse = renderer.radiance(manifest_io.light_point(light), light["intensity"], diffuse_only=True)
+        predicted = renderer.radiance(manifest.light_point(light), light["intensity"])
+        diffuse = renderer.radiance(manifest.light_point(light), light["intensity"], diffuse_only=True)
         scores.add(q, measured, predicted, diffuse, sample & ~clipped)
         if scores.worst_frame() == q:         # the worst frame so far: its images are kept
             picture = (measured, predicted, None if baselines is None else baselines["hsh3"][1](q))
@@ -154,12 +154,12 @@ def per_pixel_baselines(m: dict, held: np.ndarray, subsets: dict[str, np.ndarray
     """Per kind of :data:`facetsynth.rti.fits.KINDS`: ({subset: FrameScores}, frame q -> predicted image), the
     per-pixel fit on the frames not ``held`` out, scored as the SVBRDF is; None unless every light is
     directional and the camera orthographic (elsewhere a frame has no one light direction)."""
-    lights = manifest_io.lights(m["frames"])
-    if np.any(lights[:, 3] != 0) or not manifest_io.camera(m).orthographic:
+    lights = manifest.lights(m["frames"])
+    if np.any(lights[:, 3] != 0) or not manifest.camera(m).orthographic:
         return None
     frames = [read_frame(f["exposures"][0]["file"]) for f in m["frames"]]
     measured = np.stack([rgb / float(f["exposures"][0]["time"]) for (rgb, _), f in zip(frames, m["frames"])])
-    measured /= manifest_io.light_intensities(m["frames"])[:, None, None, :]   # to unit irradiance
+    measured /= manifest.light_intensities(m["frames"])[:, None, None, :]   # to unit irradiance
     directions, training = lights[:, :3], np.flatnonzero(~held)
     out = {}
     for kind in fits.KINDS:

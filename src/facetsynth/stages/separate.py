@@ -26,11 +26,11 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .. import light_factors
 from ..fileio import HALF, as_half, atomic_path, read_frame, read_json, write_exr, write_json, write_npy
 from ..errors import InputError
 from ..frames import imap, map_frames
-from ..light_factors import Factors, estimate as estimate_factors, fill_from_neighbours, \
-    reference_region as reference_factors
+from ..light_factors import Factors, fill_from_neighbours
 from ..normals import (FLAT, HIGHLIGHT_CONTRAST, diffuse_enough, highlight_normals, photometric_normals,
                        relief_normals)
 from ..microfacet import half_vector
@@ -363,11 +363,11 @@ def _light_factors(rho, valid, capture: RectifiedCapture, normals: np.ndarray, t
     shading = np.einsum("pfk,pk->pf", wi, normals[index])
     ok = np.asarray(valid[index])
     if reference is not None:
-        rgb = reference_factors(b, shading, ok, np.ones(len(index), bool))
+        rgb = light_factors.reference_region(b, shading, ok, np.ones(len(index), bool))
         found = Factors(rgb=rgb, points_used=np.full(len(rgb), len(index)), spread=np.zeros(len(rgb)),
                         fallback=~ok.any(axis=0) | np.all(rgb == 1.0, axis=1))
     else:
-        found = estimate_factors(b, shading, ok)
+        found = light_factors.estimate(b, shading, ok)
     if np.all(capture.lights[:, 3] == 0):      # directional: the held-out lights' factors from their neighbours
         found = replace(found, rgb=fill_from_neighbours(capture.lights[:, :3], found.rgb, found.fallback))
     return found

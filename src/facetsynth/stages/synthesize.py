@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from .. import synthesis as syn
+from .. import synthesis
 from ..cluster import material_groups
 from ..errors import InputError
 from ..fileio import read_exr, read_json, write_json, write_npy
@@ -87,12 +87,12 @@ class Settings(StageSettings):
     seed: int = 0                     # config seed: the ANN indexes' random state
     material_tolerance: float = 0.25  # config params.material_tolerance: representatives' kd within it: one material
 
-    def knobs(self) -> syn.Knobs:
+    def knobs(self) -> synthesis.Knobs:
         """The knobs of :func:`facetsynth.synthesis.complete`."""
-        return syn.Knobs(overlap_range=tuple(self.overlap), max_iterations=self.max_iterations,
-                         target_coverage=self.target_coverage, max_relative_error=self.max_relative_error,
-                         candidates_per_region=self.candidates, fill_overlap=self.fill_overlap,
-                         extend_rings=self.extend_rings)
+        return synthesis.Knobs(overlap_range=tuple(self.overlap), max_iterations=self.max_iterations,
+                               target_coverage=self.target_coverage, max_relative_error=self.max_relative_error,
+                               candidates_per_region=self.candidates, fill_overlap=self.fill_overlap,
+                               extend_rings=self.extend_rings)
 
 
 @dataclass(frozen=True)
@@ -136,7 +136,7 @@ class Prepared:
     material_anisotropy: dict
     isotropic: np.ndarray
     exemplars: Exemplars
-    spectra: syn.ExemplarSpectra | None
+    spectra: synthesis.ExemplarSpectra | None
     concentration: float | None
     mask: np.ndarray
     target: np.ndarray
@@ -230,11 +230,11 @@ def prepare(data: Data, settings: Settings) -> Prepared:
     stat, material_stat, isotropic = isotropy(data, settings)
     skip = bool(isotropic.all())
     exemplars = exemplar_set(data.sources, skip)
-    spectra = None if skip else syn.ExemplarSpectra(exemplars.d, exemplars.w, grid, exemplars.index)
+    spectra = None if skip else synthesis.ExemplarSpectra(exemplars.d, exemplars.w, grid, exemplars.index)
     concentration = None if skip else orientation_concentration(exemplars, grid, settings.isotropic_threshold)
-    mask = np.median(exemplars.w > syn.SUPPORT, axis=0) > 0.5           # the view's domain Omega (Fig. 7)
-    target = syn.hemisphere_target(mask, grid)
-    shifts = syn.region_shifts(mask, grid, settings.n_regions, *settings.overlap)
+    mask = np.median(exemplars.w > synthesis.SUPPORT, axis=0) > 0.5           # the view's domain Omega (Fig. 7)
+    target = synthesis.hemisphere_target(mask, grid)
+    shifts = synthesis.region_shifts(mask, grid, settings.n_regions, *settings.overlap)
     log.info("%d exemplars x %d rotations; domain %.1f %% of the hemisphere, rotations reach %.1f %%; "
              "%d overlap regions, shifts %s sectors", exemplars.index.size, grid.n_phi,
              100 * hemisphere_fraction(mask, grid), 100 * hemisphere_fraction(target, grid), shifts.size,
@@ -251,7 +251,7 @@ def isotropy(data: Data, settings: Settings) -> tuple[np.ndarray, dict, np.ndarr
     representative alone is noisy when its lobe is narrower than a ring) is isotropic: its representatives
     are completed by azimuthal symmetry (:func:`facetsynth.synthesis.complete_isotropic`), without a
     search. Returns each representative's statistic, each material's median, and the isotropic ones."""
-    stat = syn.anisotropy(data.rep_d, data.rep_w, data.grid)
+    stat = synthesis.anisotropy(data.rep_d, data.rep_w, data.grid)
     material = (np.arange(len(data.representatives)) if data.rep_kd is None
                 else material_groups(data.rep_kd, settings.material_tolerance))
     threshold = settings.isotropic_threshold
@@ -283,9 +283,9 @@ def orientation_concentration(exemplars: Exemplars, grid: DirectionGrid, isotrop
     axes = []
     for t in tiles(len(exemplars.d), 512):
         d, w = np.asarray(exemplars.d[t], float), np.asarray(exemplars.w[t], float)
-        axes.append(syn.orientation(d, w, grid)[syn.anisotropy(d, w, grid) >= isotropic_threshold])
+        axes.append(synthesis.orientation(d, w, grid)[synthesis.anisotropy(d, w, grid) >= isotropic_threshold])
     axes = np.concatenate(axes) if axes else np.zeros(0, complex)
-    value = syn.orientation_concentration(axes)
+    value = synthesis.orientation_concentration(axes)
     return None if not np.isfinite(value) else value
 
 
@@ -300,24 +300,26 @@ def complete_all(mode: str, data: Data, prepared: Prepared, settings: Settings) 
     for i, r in enumerate(data.representatives):
         view = data.sources[0].view[r]
         if prepared.isotropic[i]:
-            out.append(syn.complete_isotropic(data.rep_d[i], data.rep_w[i], data.grid, prepared.target, view=view))
+            out.append(synthesis.complete_isotropic(data.rep_d[i], data.rep_w[i], data.grid, prepared.target,
+                                                    view=view))
         else:
-            out.append(syn.complete(data.rep_d[i], data.rep_w[i], prepared.spectra, ex.d, ex.w, data.grid,
-                                    prepared.target, knobs, search=index, view=view, exemplars_view=ex.view))
+            out.append(synthesis.complete(data.rep_d[i], data.rep_w[i], prepared.spectra, ex.d, ex.w, data.grid,
+                                          prepared.target, knobs, search=index, view=view, exemplars_view=ex.view))
     done = Run(out, time.perf_counter() - t0, build, time.process_time() - c0)
     log.info("%s search: %d representatives in %.1f s (index build %.1f s)", mode, len(out), done.seconds, build)
     return done
 
 
-def ann_index(prepared: Prepared, grid: DirectionGrid, settings: Settings) -> syn.HistogramSearch | None:
+def ann_index(prepared: Prepared, grid: DirectionGrid, settings: Settings) -> synthesis.HistogramSearch | None:
     """Sec. 5.3's histogram keys and pynndescent indexes over the overlap regions; None (the exact search)
     when no rotation overlaps as ``overlap`` asks."""
     if prepared.shifts.size == 0:
         log.warning("no rotation gives a %.0f-%.0f %% overlap: ANN search disabled, exact search used",
                     100 * settings.overlap[0], 100 * settings.overlap[1])
         return None
-    return syn.HistogramSearch(prepared.exemplars.d, prepared.mask, grid, prepared.shifts, buckets=settings.buckets,
-                               seed=settings.seed, n_neighbors=settings.ann_neighbors, epsilon=settings.ann_epsilon)
+    return synthesis.HistogramSearch(prepared.exemplars.d, prepared.mask, grid, prepared.shifts,
+                                     buckets=settings.buckets, seed=settings.seed, n_neighbors=settings.ann_neighbors,
+                                     epsilon=settings.ann_epsilon)
 
 
 def hemisphere_fraction(cells: np.ndarray, grid: DirectionGrid) -> float:
@@ -389,12 +391,12 @@ def flag_rotation_diversity(metrics: dict, concentration: float | None, max_rela
     (wallpaper with sensor noise: 17 of 32). docs/decisions.md."""
     metrics["orientation_concentration"] = concentration
     metrics["insufficient_rotation_diversity"] = bool(concentration is not None
-                                                      and concentration >= syn.SINGLE_ORIENTATION)
+                                                      and concentration >= synthesis.SINGLE_ORIENTATION)
     stalled = f"{metrics['stalled_representatives']} of {metrics['representatives']} representatives stalled"
     if metrics["insufficient_rotation_diversity"]:
         flag_degenerate(metrics, f"INSUFFICIENT ROTATION DIVERSITY: the anisotropic exemplars' lobe axes all point "
-                        f"one way (concentration {concentration:.2f} >= {syn.SINGLE_ORIENTATION:.2f}), so no exemplar "
-                        f"shows this material at another rotation; {stalled} (no match within relative error "
+                        f"one way (concentration {concentration:.2f} >= {synthesis.SINGLE_ORIENTATION:.2f}), so no "
+                        f"exemplar shows this material at another rotation; {stalled} (no match within relative error "
                         f"{max_relative_error:.2f}, coverage before fill {metrics['coverage_before_fill']:.2f}). What "
                         "the fit did: the stalled NDFs are push-pull extensions of what this view measured, the others "
                         "completed from the one orientation seen. What it costs: the NDF where no light fell is "

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from .. import manifest as manifest_io
+from .. import manifest
 from ..fileio import atomic_path, read_rgb, read_yaml, write_json
 from ..metrics import finite_or_none, frame_psnr, image_scores, relative_l2
 from ..predict import FrameRenderer, load_model, predict
@@ -189,8 +189,8 @@ def true_rig(m: dict[str, Any]) -> tuple[Any, np.ndarray, np.ndarray]:
     """
     from ..camera import Camera
     from ..fileio import read_json
-    camera = manifest_io.camera(m)
-    lights, intensities = manifest_io.lights(m["frames"]), manifest_io.light_intensities(m["frames"])
+    camera = manifest.camera(m)
+    lights, intensities = manifest.lights(m["frames"]), manifest.light_intensities(m["frames"])
     record = m.get("truth", {}).get("calibration")
     if record is None:
         return camera, lights, intensities
@@ -274,9 +274,9 @@ def view_scores(inputs: Inputs, outputs: Outputs, settings: Settings, view: str,
     scored against its truth; its brightest frames' side-by-side images written. Returns the view's record."""
     svbrdf, ward, rig = inputs.svbrdf, inputs.ward, inputs.rig
     out_dir, images_out = Path(outputs.predictions), Path(outputs.images)
-    m = manifest_io.load(Path(folder) / "manifest.json", check_files=False)
+    m = manifest.load(Path(folder) / "manifest.json", check_files=False)
     truth = np.stack([read_rgb(f["truth"]["radiance"]) for f in m["frames"]]).astype(float)
-    mask = FrameRenderer(load_model(svbrdf), manifest_io.camera(m)).sample_mask
+    mask = FrameRenderer(load_model(svbrdf), manifest.camera(m)).sample_mask
     predictions = {}
     for name, model in (("ours", svbrdf), ("ward", ward)):
         if model is None:
@@ -286,14 +286,14 @@ def view_scores(inputs: Inputs, outputs: Outputs, settings: Settings, view: str,
         predictions[name] = np.stack([read_rgb(target / f["exposures"][0]["file"])
                                       for f in predicted["frames"]]).astype(float)
     diffuse, specular_mask, region, names = None, None, None, []
-    if manifest_io.has_truth(m):
+    if manifest.has_truth(m):
         scene = Scene.load(m["truth"]["scene"])
         diffuse, analytic, region = diffuse_truth(scene, *true_rig(m), supersample(rig))
         specular_mask = mask & analytic
         names = [r["name"] for r in scene.regions]
     ours = image_scores(truth, predictions["ours"], mask)
     record = {"frames": len(m["frames"]), "sample_pixels": int(mask.sum()),
-              "camera_view_point": manifest_io.camera(m).view_point.tolist(),
+              "camera_view_point": manifest.camera(m).view_point.tolist(),
               "heldout_psnr_db": ours["psnr_db"], "heldout_rmse": ours["rmse"],
               "heldout_rmse_normalised": ours["rmse_normalised"], "heldout_ssim": ours["ssim"],
               "peak_radiance": ours["peak"],

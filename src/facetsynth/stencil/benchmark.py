@@ -19,7 +19,6 @@ lobes of different widths and colours, rendered on the UTIA grid
 
 from __future__ import annotations
 
-import importlib
 import os
 import platform
 import sys
@@ -30,11 +29,12 @@ from pathlib import Path
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from . import grid, kurt, model as Mo, readers, scores
+from . import grid, kurt, readers, scores
 from ..bench import write_csv
 from ..microfacet import rho
+from .fit import axis_error_deg, fit
+from .model import Mode, StencilModel, evaluate_utia
 
-F = importlib.import_module("facetsynth.stencil.fit")
 RGL_DIR = Path("resources/brdfs/rgl")
 CSV_PATH = Path("results/bench/stencil.csv")
 COLUMNS = ("set", "material", "model", "modes", "delta_e", "rmse", "psnr_db", "ssim", "fit_s", "fit_cpu_s")
@@ -89,10 +89,10 @@ def anisotropic_cases(rgl_dir=RGL_DIR):
 def compare(brdf, kurt_fit=True):
     """Fit both models to one BRDF and score them against it -> list of row dicts (stencil, Kurt)."""
     t, c = time.perf_counter(), time.process_time()
-    m = F.fit(brdf)
+    m = fit(brdf)
     ts, cs = time.perf_counter() - t, time.process_time() - c
     rows = [dict(model="stencil", modes=len(m.modes), fit_s=ts, fit_cpu_s=cs,
-                 **scores.score_brdf(brdf, Mo.evaluate_utia(m)))]
+                 **scores.score_brdf(brdf, evaluate_utia(m)))]
     if kurt_fit:
         c = time.process_time()
         km, tk = kurt.fit_kurt(brdf)
@@ -113,7 +113,7 @@ def _md(rows):
 
 def run(rgl_dir=RGL_DIR, kurt_fit=True):
     """All comparison rows: the seven RGL BRDFs (set 'rgl') and the anisotropic cases (set 'anisotropic')."""
-    F.fit(np.zeros(grid.SHAPE))  # warm the geometry cache (one-off ~0.05 s per process)
+    fit(np.zeros(grid.SHAPE))  # warm the geometry cache (one-off ~0.05 s per process)
     files = sorted(Path(rgl_dir).glob("*.bsdf"))
     if not files:
         raise SystemExit(f"{rgl_dir}: no .bsdf files (run from the repository root or pass the folder)")
@@ -128,31 +128,31 @@ def run(rgl_dir=RGL_DIR, kurt_fit=True):
 def _synth(phis):
     cols = [(0.2, 0.3, 0.9), (0.9, 0.2, 0.1), (0.1, 0.8, 0.2)]
     ws = (0.75, 0.65, 0.6)
-    modes = tuple(Mo.Mode(np.deg2rad(p), w, 0.4, 0.04, 0.05, 1.0, 6.0, c) for p, w, c in zip(phis, ws, cols))
-    return Mo.StencilModel(modes, (0.0,) * max(len(modes) - 1, 0), 0.05,
-                           modes[-1].m if modes else (0.1, 0.1, 0.1), 4.0, 60.0, 0.4, 0.04)
+    modes = tuple(Mode(np.deg2rad(p), w, 0.4, 0.04, 0.05, 1.0, 6.0, c) for p, w, c in zip(phis, ws, cols))
+    return StencilModel(modes, (0.0,) * max(len(modes) - 1, 0), 0.05,
+                        modes[-1].m if modes else (0.1, 0.1, 0.1), 4.0, 60.0, 0.4, 0.04)
 
 
 def synthetic_lines():
     lines = ["| case | true phi_a (deg) | found phi_a (deg) | modes ok | max phi_a error | fit time |",
              "|---|---|---|---|---|---|"]
     for phis in [(), (30,), (20, 110), (100, 160), (10, 70, 140)]:
-        b = Mo.evaluate_utia(_synth(phis))
+        b = evaluate_utia(_synth(phis))
         t = time.perf_counter()
-        m = F.fit(b)
+        m = fit(b)
         t = time.perf_counter() - t
         got = [float(np.rad2deg(x.phi_a)) for x in m.modes]
         lines.append(f"| stencil {len(phis)} modes | {list(phis)} | {[round(g, 2) for g in got]} | "
-                     f"{len(got) == len(phis)} | {F.axis_error_deg(got, phis):.2f} | {t * 1000:.0f} ms |")
+                     f"{len(got) == len(phis)} | {axis_error_deg(got, phis):.2f} | {t * 1000:.0f} ms |")
     for pf in [(10, 100), (35, 150), (60, 95)]:
         b = ggx_lobes([(pf[0], 0.05, 0.4, (0.5, 0.3, 0.2)), (pf[1], 0.08, 0.5, (0.2, 0.3, 0.6))], kd=0.05)
         t = time.perf_counter()
-        m = F.fit(b)
+        m = fit(b)
         t = time.perf_counter() - t
         exp = [(90 - p) % 180 for p in pf]
         got = [float(np.rad2deg(x.phi_a)) for x in m.modes]
         lines.append(f"| GGX 2 lobes, phi_frame {list(pf)} | {exp} | {[round(g, 2) for g in got]} | "
-                     f"{len(got) == 2} | {F.axis_error_deg(got, exp):.2f} | {t * 1000:.0f} ms |")
+                     f"{len(got) == 2} | {axis_error_deg(got, exp):.2f} | {t * 1000:.0f} ms |")
     return "\n".join(lines)
 
 
