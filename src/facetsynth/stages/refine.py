@@ -78,24 +78,29 @@ class Settings(StageSettings):
     turn_margin: float = 0.01         # ... taken where it lowers the point's specular error by more than this share
 
 
-def point_sums(model: SVBRDF, capture: RectifiedCapture, specular, valid, index: np.ndarray) -> NormalSums:
+def point_sums(model: SVBRDF, capture: RectifiedCapture, specular, valid, index: np.ndarray,
+               separated_kd: np.ndarray | None = None) -> NormalSums:
     """The normal sums of :func:`facetsynth.refine.solve` at points ``index`` (sorted) from their valid samples
     lit from above (i.z > 0), rho = separate's residual + kd/pi, weighted in radiance; a tile of points at a
-    time (TILE_POINTS: the (points, frames, 3) temporaries stay small)."""
+    time (TILE_POINTS: the (points, frames, 3) temporaries stay small). ``separated_kd`` (P, 3): the kd that
+    separate's residual was taken against (default the model's: the pipeline's model carries it; a model
+    whose kd was refitted must be given the pipeline's, or the samples move with the fit)."""
     if index.size > TILE_POINTS:
-        parts = [point_sums(model, capture, specular, valid, index[t]) for t in tiles(index.size)]
+        parts = [point_sums(model, capture, specular, valid, index[t], separated_kd) for t in tiles(index.size)]
         return NormalSums(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(NormalSums)))
     pp, _, wi, u, rho_s, views = samples(capture, specular, valid, index)
-    return sums_of(model, index, pp, wi, u, rho_s, views)
+    return sums_of(model, index, pp, wi, u, rho_s, views, separated_kd)
 
 
-def sums_of(model: SVBRDF, index: np.ndarray, pp, wi, u, rho_s, views) -> NormalSums:
+def sums_of(model: SVBRDF, index: np.ndarray, pp, wi, u, rho_s, views,
+            separated_kd: np.ndarray | None = None) -> NormalSums:
     """:func:`point_sums` of samples already gathered (:func:`samples`' rows ``pp`` of ``index``, ...)."""
     at = index[pp]
     area_o = model.area_at(index, views)
     spec, c = model.specular_terms(at, wi, views[pp], area_o[pp])
     g = spec * fresnel(c, model.eta[at])
-    return NormalSums.of(pp, len(index), rho_s + model.kd[at] / np.pi, g, u)
+    kd = model.kd if separated_kd is None else separated_kd
+    return NormalSums.of(pp, len(index), rho_s + kd[at] / np.pi, g, u)
 
 
 def samples(capture: RectifiedCapture, specular, valid, index: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -396,7 +401,7 @@ def fit(model: SVBRDF, capture: RectifiedCapture, specular, valid, settings: Set
         log.warning("%d point(s) with a non-finite kd or ks fit keep the pipeline's", int(bad.sum()))
         a[bad], b[bad] = a0[bad], b0[bad]
     refined = replace(model, kd=np.pi * a, ks=b)
-    figures = {**{f"fitting_samples_rel_l2_{when}": samples_rel_l2(m, capture, specular, valid)
+    figures = {**{f"fitting_samples_rel_l2_{when}": samples_rel_l2(m, capture, specular, valid, start.kd)
                   for when, m in (("before", start), ("after", refined))},
                "fitting_samples_points": FIGURE_POINTS, "points_fitted": int(fitted.sum()), "ridge": settings.ridge,
                "shared": shared, "eta": etas, "stretch": stretches, "turns": turns, "tables": tables,
@@ -464,14 +469,16 @@ def refit_tables(model: SVBRDF, capture: RectifiedCapture, specular, valid,
     return replace(model, ndf=ndf, area=area), records
 
 
-def samples_rel_l2(model: SVBRDF, capture: RectifiedCapture, specular, valid) -> float | None:
+def samples_rel_l2(model: SVBRDF, capture: RectifiedCapture, specular, valid,
+                   separated_kd: np.ndarray) -> float | None:
     """sqrt(sum u (rho - model)^2 / sum u rho^2) over the valid samples of up to FIGURE_POINTS visible points
     (evenly strided): the model against the samples it was fitted on, in radiance (u of
-    :func:`facetsynth.refine.radiance_weights`), on the rectified grid."""
+    :func:`facetsynth.refine.radiance_weights`), on the rectified grid; rho = separate's residual +
+    ``separated_kd``/pi (the pipeline's kd: the samples stay where they were whatever kd the model has)."""
     index = strided(np.flatnonzero(capture.visible), FIGURE_POINTS)
     if index.size == 0:
         return None
-    sums = point_sums(model, capture, specular, valid, index)
+    sums = point_sums(model, capture, specular, valid, index, separated_kd)
     total = float(sums.uyy.sum())
     err = float(sums.sse(model.kd[index] / np.pi, model.ks[index]).sum())
     return finite_or_none(np.sqrt(err / total)) if total > 0 else None
