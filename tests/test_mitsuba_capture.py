@@ -305,8 +305,9 @@ PAPER_480 = Path(__file__).parents[1] / "rig" / "descriptions" / "paper-480.yaml
 # tiles 0.032 / 0.057 / 0.032 (session 40: 0.049 / 0.074 / 0.049, before refine grouped materials by their
 # points' kd and let the samples choose the NDF they share). Session 42 (rectify averages the pixels that see the
 # sample alone, refine turns to a fraction of a sector): copper 0.047 / 0.075 / 0.031, tiles 0.036 / 0.057 /
-# 0.021: the held-out views better by a third, the copper's relit view worse (0.049 / 0.077 without the fraction
-# of a sector: the edge cells, no longer half background, change what the conductor's materials choose). The
+# 0.021 (the held-out views better by a third). The self-check then scored every pixel whose centre is on the
+# sample, the pixels across its edge (half background) too; scored as its definition says, on the pixels that see
+# the sample alone: copper 0.032 / 0.044 (session 41's fit 0.036 / 0.057), tiles 0.022 / 0.029. The
 # bounds: the measurement plus about 15 %, and never above the issue's (0.05 / 0.07 / 0.10); docs/accuracy.md.
 MITSUBA_TILES_BSDF = {"type": "blendbsdf", "weight": 0.5,
                       "bsdf_0": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.30, 0.30, 0.30]}},
@@ -320,14 +321,15 @@ MITSUBA_TILES_BSDF = {"type": "blendbsdf", "weight": 0.5,
 #   rig's 0.463, docs/decisions.md "What the measured quadrants can reach"); render 54 s, fit and self-check
 #   137 s on 2 cores. The issue's bounds 0.08 / 0.10 / 0.20: relit met (bound 0.08, the issue's: the
 #   measurement plus 15 % would pass it), held-out lights NOT met (bound 0.138, the measurement plus 15 %),
-#   paper view met (bound 0.15, the measurement plus 15 %). Session 42: 0.072 / 0.132 / 0.127 / 0.484 (held-out
-#   lights bound 0.152, the measurement plus 15 %).
+#   paper view met (bound 0.15, the measurement plus 15 %). Session 42: 0.070 / 0.103 / 0.127 / 0.484 on the
+#   pixels that see the sample alone (0.072 / 0.132 with the pixels across its edge); held-out lights NOT met
+#   (0.10), bound 0.118, the measurement plus 15 %.
 # Every case also renders OTHER_VIEW (config.yaml's theta30, an elevation 23 deg above the fitting camera's
 # 53.1 deg; the paper's view is at 50.9 deg), reported (printed, and recorded as a test property), not asserted.
 OTHER_VIEW = (30.0, 20.0)
-NATIVE = {"copper": (COPPER, "turned", (0.054, 0.086, 0.036)),
-          "tiles": (MITSUBA_TILES_BSDF, "tiles", (0.042, 0.066, 0.025)),
-          "rgl-quadrants": (mitsuba_capture.scene_regions(RGL_QUADRANTS)["regions"], 0.0, (0.08, 0.152, 0.146))}
+NATIVE = {"copper": (COPPER, "turned", (0.037, 0.051, 0.036)),
+          "tiles": (MITSUBA_TILES_BSDF, "tiles", (0.025, 0.034, 0.025)),
+          "rgl-quadrants": (mitsuba_capture.scene_regions(RGL_QUADRANTS)["regions"], 0.0, (0.08, 0.118, 0.146))}
 
 
 @pytest.fixture(scope="module", params=sorted(NATIVE))

@@ -60,7 +60,7 @@ def sample_pixels(camera: Camera, width: float, height: float) -> np.ndarray:
         xy = corners[..., :2] / corners[..., 2:]
     points = np.concatenate([xy, np.zeros(xy.shape[:-1] + (1,))], axis=-1)
     with np.errstate(invalid="ignore"):
-        ahead = (points @ camera.R.T + camera.t)[..., 2] > 0
+        ahead = True if camera.orthographic else (points @ camera.R.T + camera.t)[..., 2] > 0
         slack = EDGE_SLACK * max(width, height)      # a corner on the edge is on it (rounding)
         inside = ahead & (np.abs(xy[..., 0]) <= width / 2 + slack) & (np.abs(xy[..., 1]) <= height / 2 + slack)
     return (inside[:-1, :-1] & inside[:-1, 1:] & inside[1:, :-1] & inside[1:, 1:]).astype(np.float32)

@@ -30,6 +30,7 @@ from .. import manifest
 from ..fileio import read_frame, read_json, write_json
 from ..metrics import finite_or_none
 from ..predict import FrameRenderer, load_model
+from ..rectify import sample_pixels
 from ..rti import fits
 from ..selfcheck import FrameScores, heldout_lights, relit_frames
 from .common import RuleFiles, StageSettings
@@ -43,8 +44,9 @@ log = logging.getLogger(__name__)
 POOR_FIT_REL_L2 = 0.15
 PICTURE_HEIGHT = 320   # the worst frames' pictures are at least this tall (the report's figures)
 
-DEFINITION = ("relative L2 = sqrt(sum (pred - meas)^2 / sum meas^2) over the sample's pixels (every sub-pixel "
-              "on the sample; pixels clipped in a frame left out of that frame), every frame and RGB channel of "
+DEFINITION = ("relative L2 = sqrt(sum (pred - meas)^2 / sum meas^2) over the pixels that see the sample alone "
+              "(all four corners on it, facetsynth.rectify.sample_pixels; pixels clipped in a frame left out of "
+              "that frame), every frame and RGB channel of "
               "the subset, meas = the hdr stage's frames of the fitting camera; specular_rel_l2 = the same error "
               "against sum (meas - diffuse)^2, diffuse = the model's own kd/pi (n.i) L / r^2; frame PSNR = 20 "
               "log10(peak / rmse) per frame, peak = the frame's largest measured radiance on the sample, capped "
@@ -88,8 +90,10 @@ def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threa
     if inputs.geometry is not None:
         for frame, seen in zip(m["frames"], read_json(inputs.geometry)["frames"]):
             frame["light"]["intensity"] = seen["light"]["intensity"]
-    renderer = FrameRenderer(load_model(inputs.svbrdf), manifest.camera(m))
-    sample = renderer.sample_mask
+    camera = manifest.camera(m)
+    renderer = FrameRenderer(load_model(inputs.svbrdf), camera)
+    # pixels across the sample's edge mix it with the background: no measurement of it (rectify leaves them out)
+    sample = renderer.sample_mask & (sample_pixels(camera, m["sample"]["width"], m["sample"]["height"]) > 0)
     held = heldout_lights(len(m["frames"]), settings.heldout_every)
     subsets = {"relit": relit_frames(held, settings.relit_every), "heldout": np.flatnonzero(held)}
     images_out = Path(outputs.images)
@@ -101,7 +105,7 @@ def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threa
         metrics["baselines"] = {kind: {name: finite_or_none(s.rel_l2) for name, s in scored.items()}
                                 for kind, (scored, _) in baselines.items()}
     for name, frames in subsets.items():
-        metrics[name] = subset_scores(m, renderer, name, frames, baselines, images_out)
+        metrics[name] = subset_scores(m, renderer, sample, name, frames, baselines, images_out)
     for kind, scores in metrics.get("baselines", {}).items():
         log.info("per-pixel %s: relit %s, held-out %s", kind, scores["relit"], scores["heldout"])
     poor = (metrics["heldout"]["rel_l2"] or 0.0) > POOR_FIT_REL_L2
@@ -113,12 +117,11 @@ def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threa
     return metrics
 
 
-def subset_scores(m: dict, renderer: FrameRenderer, name: str, frames: np.ndarray, baselines,
+def subset_scores(m: dict, renderer: FrameRenderer, sample: np.ndarray, name: str, frames: np.ndarray, baselines,
                   images_out: Path) -> dict:
     """The subset ``name`` (frames ``frames`` of the manifest ``m``) relit by ``renderer`` and scored against
-    hdr's frames over the sample's unclipped pixels; its worst frame's picture written to ``images_out``
-    (beside the per-pixel HSH order 3 where ``baselines``). Returns the subset's record."""
-    sample = renderer.sample_mask
+    hdr's frames over the unclipped pixels of ``sample`` (H, W); its worst frame's picture written to
+    ``images_out`` (beside the per-pixel HSH order 3 where ``baselines``). Returns the subset's record."""
     scores, picture = FrameScores(), None
     for q in tqdm(frames, desc=f"selfcheck: {name}", unit="frame"):
         light = m["frames"][q]["light"]
