@@ -12,7 +12,7 @@ that every stage (and a user) finds the same ones:
   relit under lights it was fitted on, i.e. whether it reproduces what it saw.
 
 Scores accumulate frame by frame (memory does not grow with the frame count):
-relative L2 sqrt(sum (pred - meas)^2 / sum meas^2) over the sample's pixels,
+relative L2 sqrt(sum (pred - meas)^2 / sum meas^2) over the pixels that see the sample alone (none across its edge),
 every frame and channel of the subset (:func:`facetsynth.metrics.relative_l2`
 of the stacked frames, with clipped pixels left out per frame); its specular
 part, the same of (pred - diffuse) against (meas - diffuse) with diffuse the
