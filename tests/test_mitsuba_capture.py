@@ -307,8 +307,10 @@ PAPER_480 = Path(__file__).parents[1] / "rig" / "descriptions" / "paper-480.yaml
 # sample alone, refine turns to a fraction of a sector): copper 0.047 / 0.075 / 0.031, tiles 0.036 / 0.057 /
 # 0.021 (the held-out views better by a third). The self-check then scored every pixel whose centre is on the
 # sample, the pixels across its edge (half background) too; scored as its definition says, on the pixels that see
-# the sample alone: copper 0.032 / 0.044 (session 41's fit 0.036 / 0.057), tiles 0.022 / 0.029. The
-# bounds: the measurement plus about 15 %, and never above the issue's (0.05 / 0.07 / 0.10); docs/accuracy.md.
+# the sample alone: copper 0.032 / 0.044 (session 41's fit 0.036 / 0.057), tiles 0.022 / 0.029; the final
+# code of session 42 (scenes suite, clean clone): copper 0.030 / 0.040 / 0.029, tiles 0.021 / 0.033 / 0.021 (the
+# tiles' held-out lights 0.029 and 0.033 in two runs: threads and k-means vary). The bounds: the larger
+# measurement plus about 15 %, and never above the issue's (0.05 / 0.07 / 0.10); docs/accuracy.md.
 MITSUBA_TILES_BSDF = {"type": "blendbsdf", "weight": 0.5,
                       "bsdf_0": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.30, 0.30, 0.30]}},
                       "bsdf_1": {"type": "roughconductor", "distribution": "ggx", "alpha_u": 0.10, "alpha_v": 0.30,
@@ -328,7 +330,7 @@ MITSUBA_TILES_BSDF = {"type": "blendbsdf", "weight": 0.5,
 # 53.1 deg; the paper's view is at 50.9 deg), reported (printed, and recorded as a test property), not asserted.
 OTHER_VIEW = (30.0, 20.0)
 NATIVE = {"copper": (COPPER, "turned", (0.037, 0.051, 0.036)),
-          "tiles": (MITSUBA_TILES_BSDF, "tiles", (0.025, 0.034, 0.025)),
+          "tiles": (MITSUBA_TILES_BSDF, "tiles", (0.025, 0.038, 0.025)),
           "rgl-quadrants": (mitsuba_capture.scene_regions(RGL_QUADRANTS)["regions"], 0.0, (0.08, 0.118, 0.146))}
 
 
