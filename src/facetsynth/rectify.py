@@ -51,9 +51,9 @@ def warp_to_plane(image: np.ndarray, camera: Camera, grid: PlaneGrid, filtername
 def sample_pixels(camera: Camera, width: float, height: float) -> np.ndarray:
     """(H, W) float32: 1 for the pixels that see nothing but the sample, 0 elsewhere: all four corners meet the
     plane ahead of the camera inside its ``width`` x ``height`` about the origin (the plane's image of the
-    rectangle is convex, so the whole pixel is inside; corners on the edge count, :data:`EDGE_SLACK`). A pixel across the sample's edge mixes it with the
-    background and is no measurement of either (issue 29: the demo's far row of points, half the truth's kd
-    and ks, was drawn by such pixels)."""
+    rectangle is convex, so the whole pixel is inside; corners on the edge count, :data:`EDGE_SLACK`). A pixel
+    across the sample's edge mixes it with the background and is no measurement of either (issue 29: the
+    demo's far row of points, half the truth's kd and ks, was drawn by such pixels)."""
     cols, rows = np.meshgrid(np.arange(camera.width + 1) - 0.5, np.arange(camera.height + 1) - 0.5)
     corners = np.stack([cols, rows, np.ones_like(cols)], axis=-1) @ np.linalg.inv(camera.plane_homography()).T
     with np.errstate(divide="ignore", invalid="ignore"):
