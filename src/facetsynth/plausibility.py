@@ -22,6 +22,7 @@ import numpy as np
 
 from . import manifest
 from .errors import InputError
+from .rectify import on_sample
 
 # --- the sample against the camera's view of it ---------------------------------------------------------
 
@@ -139,11 +140,7 @@ def sample_pixels(capture: dict[str, Any], chunk_rows: int = 512) -> np.ndarray:
         cc, rr = np.meshgrid(cols, rows)
         xyw = np.stack([cc, rr, np.ones_like(cc)], axis=-1) @ Hinv.T
         with np.errstate(all="ignore"):
-            x, y = xyw[..., 0] / xyw[..., 2], xyw[..., 1] / xyw[..., 2]
-            points = np.stack([x, y, np.zeros_like(x)], axis=-1)
-            depth = (points @ camera.R.T + camera.t)[..., 2]
-            ahead = np.ones_like(x, bool) if camera.orthographic else depth > 0
-            out[start:start + len(rows)] = ahead & (np.abs(x) <= w / 2) & (np.abs(y) <= h / 2)
+            out[start:start + len(rows)] = on_sample(camera, xyw[..., :2] / xyw[..., 2:], w, h)
     return out
 
 

@@ -58,12 +58,18 @@ def sample_pixels(camera: Camera, width: float, height: float) -> np.ndarray:
     corners = np.stack([cols, rows, np.ones_like(cols)], axis=-1) @ np.linalg.inv(camera.plane_homography()).T
     with np.errstate(divide="ignore", invalid="ignore"):
         xy = corners[..., :2] / corners[..., 2:]
-    points = np.concatenate([xy, np.zeros(xy.shape[:-1] + (1,))], axis=-1)
-    with np.errstate(invalid="ignore"):
-        ahead = True if camera.orthographic else (points @ camera.R.T + camera.t)[..., 2] > 0
-        slack = EDGE_SLACK * max(width, height)      # a corner on the edge is on it (rounding)
-        inside = ahead & (np.abs(xy[..., 0]) <= width / 2 + slack) & (np.abs(xy[..., 1]) <= height / 2 + slack)
+    inside = on_sample(camera, xy, width, height, slack=EDGE_SLACK * max(width, height))   # rounding: on the edge
     return (inside[:-1, :-1] & inside[:-1, 1:] & inside[1:, :-1] & inside[1:, 1:]).astype(np.float32)
+
+
+def on_sample(camera: Camera, xy: np.ndarray, width: float, height: float, slack: float = 0.0) -> np.ndarray:
+    """(...) bool: the plane points ``xy`` (..., 2) that a ray of ``camera`` meets ahead of it (every ray of an
+    orthographic camera) inside the sample's ``width`` x ``height`` about the origin, widened by ``slack``;
+    non-finite points are not."""
+    with np.errstate(invalid="ignore", over="ignore"):
+        points = np.concatenate([xy, np.zeros(xy.shape[:-1] + (1,))], axis=-1)
+        ahead = True if camera.orthographic else (points @ camera.R.T + camera.t)[..., 2] > 0
+        return ahead & (np.abs(xy[..., 0]) <= width / 2 + slack) & (np.abs(xy[..., 1]) <= height / 2 + slack)
 
 
 def warp_sample(image: np.ndarray, weight: np.ndarray, camera: Camera, grid: PlaneGrid,
@@ -92,11 +98,7 @@ def native_resolution(camera: Camera, width: float, height: float) -> int:
     sample (``rectify.resolution: auto``): no more points than measured, none fewer. Pixels count when the
     ray through their centre meets the plane, ahead of the camera, inside the sample's width x height.
     Square cells, rows from the aspect (:func:`facetsynth.stages.rectify.run`)."""
-    xy = camera.pixel_plane_points(1)
-    points = np.concatenate([xy, np.zeros(xy.shape[:-1] + (1,))], axis=-1)
-    ahead = (points @ camera.R.T + camera.t)[..., 2] > 0
-    on = ahead & (np.abs(xy[..., 0]) <= width / 2) & (np.abs(xy[..., 1]) <= height / 2)
-    pixels = int(on.sum())
+    pixels = int(on_sample(camera, camera.pixel_plane_points(1), width, height).sum())
     if pixels == 0:
         raise InputError(None, "rectify.resolution auto: the camera sees no part of the sample "
                                f"({width} x {height} m about the origin): check the manifest's camera")
