@@ -96,8 +96,8 @@ def test_float32_and_float64_runs_agree():
         spectra = synthesis.ExemplarSpectra(dd, ww, SGRID)
         done = synthesis.complete(dd[0], ww[0], spectra, dd, ww, SGRID, synthesis.hemisphere_target(ww[0] > 0, SGRID),
                                   synthesis.Knobs(overlap_range=(0.5, 0.85), max_iterations=12, target_coverage=0.99,
-                                            max_relative_error=0.4, candidates_per_region=5, fill_overlap=None,
-                                            extend_rings=False), exclude=0)
+                                            max_relative_error=0.4, candidates_per_region=5, fill_overlap=None),
+                                  exclude=0)
         runs[dt] = (km, done)
     (k32, c32), (k64, c64) = runs[np.float32], runs[np.float64]
     np.testing.assert_array_equal(k32.labels, k64.labels)

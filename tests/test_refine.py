@@ -134,7 +134,8 @@ def test_frame_scores_against_known_errors():
 from facetsynth import microfacet  # noqa: E402
 from facetsynth.grid import DirectionGrid  # noqa: E402
 from facetsynth.params import normalise  # noqa: E402
-from facetsynth.refine import best_turns, parabola_minimum, stretch  # noqa: E402
+from facetsynth.refine import best_turns, stretch  # noqa: E402
+from facetsynth.stages.refine import ladder_minimum  # noqa: E402
 
 
 def _ggx_table(grid, alpha_u, alpha_v, phi=0.0):
@@ -154,11 +155,26 @@ def test_stretch_maps_one_ggx_lobe_onto_another_of_scaled_roughness():
     np.testing.assert_array_equal(stretch(wide, grid, 1.0), wide)
 
 
-def test_parabola_minimum_finds_the_vertex_and_stays_on_the_ladder():
-    x = np.array([0.6, 0.7, 0.8, 0.9, 1.0])
-    assert parabola_minimum(x, (x - 0.83) ** 2) == pytest.approx(0.83, abs=1e-12)
-    assert parabola_minimum(x, (x - 0.2) ** 2) == 0.6            # outside: the ladder's end
-    assert parabola_minimum(x, np.ones(5)) == 0.6                # flat: the first of the equal ones
+def test_ladder_minimum_finds_the_minimum_between_the_best_rungs_neighbours():
+    """An asymmetric error in log eta with its minimum at 1.8, on refine's eta ladder: the bounded search finds
+    it to 0.5 % where the parabola through the best three rungs (1.4, 1.7, 2.1) puts it at 1.74; at the
+    ladder's end, and on a flat error, the ladder's own best (the first of equals) stays."""
+    ladder = np.array([1.2, 1.4, 1.7, 2.1, 2.7, 3.5])
+
+    def error(v):
+        x = np.log(v / 1.8)
+        return 1.0 + x * x + 1.5 * x ** 3
+
+    value, err = ladder_minimum(ladder, error(ladder), error)
+    assert value == pytest.approx(1.8, rel=0.005) and err == pytest.approx(error(value))
+    x, y = np.log(ladder[1:4]), error(ladder[1:4])
+    vertex = np.exp(x[1] - 0.5 * ((x[1] - x[0]) ** 2 * (y[1] - y[2]) - (x[1] - x[2]) ** 2 * (y[1] - y[0]))
+                    / ((x[1] - x[0]) * (y[1] - y[2]) - (x[1] - x[2]) * (y[1] - y[0])))
+    assert abs(vertex - 1.8) > 0.05                                   # 1.743: the parabola's bias the search removes
+    rising = lambda v: np.log(v)                                       # noqa: E731
+    assert ladder_minimum(ladder, rising(ladder), rising) == (1.2, pytest.approx(np.log(1.2)))
+    flat = lambda v: 1.0                                               # noqa: E731
+    assert ladder_minimum(ladder, np.ones(ladder.size), flat) == (1.2, 1.0)
 
 
 def test_best_turns_finds_the_representative_and_turn_that_made_the_samples():

@@ -123,20 +123,6 @@ def stretch(table: np.ndarray, grid, s: float) -> np.ndarray:
     return grid.lookup(np.asarray(table, float), src.reshape(-1, 3)).reshape(np.shape(table)) * jacobian
 
 
-def parabola_minimum(x: np.ndarray, y: np.ndarray) -> float:
-    """The minimum of the parabola through the smallest of ``y`` (at x, ascending) and its two neighbours,
-    clipped to their interval; the smallest x's own value at either end of the ladder."""
-    k = int(np.argmin(y))
-    if k == 0 or k == len(x) - 1:
-        return float(x[k])
-    (x0, x1, x2), (y0, y1, y2) = x[k - 1:k + 2], y[k - 1:k + 2]
-    den = (x1 - x0) * (y1 - y2) - (x1 - x2) * (y1 - y0)
-    if den >= 0:                       # not convex (y1 is the smallest: only a degenerate parabola)
-        return float(x1)
-    top = (x1 - x0) ** 2 * (y1 - y2) - (x1 - x2) ** 2 * (y1 - y0)
-    return float(np.clip(x1 - 0.5 * top / den, x0, x2))
-
-
 @numba.njit(cache=True, nogil=True)
 def _turn_error(t, p, denom, r, u, table, s0, s1, k, urr, n_theta, n_phi):
     """:func:`best_turns`' error of one candidate turned by ``k`` sectors (k may be fractional) for the samples

@@ -80,7 +80,6 @@ class Settings(StageSettings):
     ann_neighbors: int = 30           # pynndescent graph degree
     ann_epsilon: float = 0.2          # pynndescent search breadth
     fill_overlap: float | None = None   # relaxed upper overlap bound for the last holes; None: the paper's rule
-    extend_rings: bool = False        # log-linear extension beyond the reachable rings (else the last ring held)
     isotropic_threshold: float = 0.13   # a material this close to azimuthal symmetry: completed by symmetry; 0: off
     max_exemplars: int = 4096         # (preset) exemplar points: the visible points, strided down to this many
     max_iterations: int = 12          # (preset) merges per representative at most
@@ -91,8 +90,7 @@ class Settings(StageSettings):
         """The knobs of :func:`facetsynth.synthesis.complete`."""
         return synthesis.Knobs(overlap_range=tuple(self.overlap), max_iterations=self.max_iterations,
                                target_coverage=self.target_coverage, max_relative_error=self.max_relative_error,
-                               candidates_per_region=self.candidates, fill_overlap=self.fill_overlap,
-                               extend_rings=self.extend_rings)
+                               candidates_per_region=self.candidates, fill_overlap=self.fill_overlap)
 
 
 @dataclass(frozen=True)
