@@ -158,8 +158,8 @@ def test_merge_follows_eqs_16_and_17():
 
 
 @pytest.mark.parametrize("options, min_coverage, max_error, max_overall", [
-    ({}, 0.83, 0.15, 0.23),                                          # the paper's rule, push-pull: 0.850, 0.120, 0.195
-    ({"fill_overlap": 0.95}, 0.93, 0.03, 0.02),                    # the option: 0.948, 0.008, 0.012
+    ({}, 0.83, 0.15, 0.30),                                          # the paper's rule, push-pull: 0.850, 0.120, 0.275
+    ({"fill_overlap": 0.95}, 0.93, 0.03, 0.02),                    # the option: 0.948, 0.008, 0.016
 ])
 def test_synthesis_completes_an_anisotropic_ggx_from_rotated_partial_copies(options, min_coverage, max_error,
                                                                             max_overall):
@@ -195,9 +195,11 @@ def test_synthesis_completes_an_anisotropic_ggx_from_rotated_partial_copies(opti
 
 def test_the_rings_beyond_reach_continue_a_ggx_lobe_as_ggx():
     """Rotation about the normal cannot reach the rings past the view's last one: they continue each azimuth's
-    D^-1/2 line in sin^2 theta (GGX's form, fitted where D >= 0.1 x peak). Anisotropic and isotropic GGX cut at
+    D^-1/2 line in sin^2 theta (GGX's form, fitted on the outer half of the reachable rings). Anisotropic and
+    isotropic GGX cut at
     56 deg come back to rounding; the last ring held instead adds 0.9-1.2 % of their mass (ks = integral of
-    (n.h) D carries it). A table without a core on some azimuths, and an empty one, stay finite, non-negative
+    (n.h) D carries it). A narrow lobe over a broad one (a measured lobe is not one GGX) keeps its mass beyond
+    the reach to 2 % (held: 43 % too much). A table with data on 3 azimuths only, and an empty one, stay finite, non-negative
     and non-increasing past the reach."""
     grid = DirectionGrid(32, 128)
     target = np.broadcast_to((np.degrees(grid.theta) <= 56.0)[:, None], grid.shape)
@@ -210,8 +212,16 @@ def test_the_rings_beyond_reach_continue_a_ggx_lobe_as_ggx():
         made = synthesis.decay_beyond_reach(held, target, grid)
         np.testing.assert_allclose(made, truth, rtol=1e-9)
         assert grid.integrate(held * cos) > 1.008 * grid.integrate(truth * cos)         # the test can fail
+    beyond = np.zeros(grid.shape, bool)
+    beyond[last + 1:] = True
+    two = 0.7 * ggx_table([0.3], grid, (0.05, 0.05))[0] + 0.3 * ggx_table([0.3], grid, (0.4, 0.4))[0]
+    held = two.copy()
+    held[last + 1:] = held[last]
+    mass = [grid.integrate(np.where(beyond, t * cos, 0.0)) for t in (two, held,
+                                                                       synthesis.decay_beyond_reach(held, target, grid))]
+    assert mass[2] == pytest.approx(mass[0], rel=0.02) and mass[1] > 1.3 * mass[0]   # 0.0207 / 0.0297 / 0.0207
     spot = np.zeros(grid.shape)
-    spot[:last + 1, :3] = np.linspace(1.0, 0.1, last + 1)[:, None]                    # a core on 3 azimuths only
+    spot[:last + 1, :3] = np.linspace(1.0, 0.1, last + 1)[:, None]                    # data on 3 azimuths only
     for table in (spot, np.zeros(grid.shape), ggx_table([0.0], grid, (0.1, 0.32))[0] * np.where(target, 1.0, 0.0)):
         made = synthesis.decay_beyond_reach(table, target, grid)
         assert np.isfinite(made).all() and (made >= 0).all()
