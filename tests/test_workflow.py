@@ -127,12 +127,14 @@ def test_noise_free_demo_predicts_held_out_views_and_fits_stencils(demo_run):
     # before the issue): held-out views 0.060 (0.067; 0.094); self-check relit 0.046 (0.056; 0.095), held-out
     # lights 0.042 (0.055); noise-free is no worse. Bounds: about 15 % above. Session 42 (rectify averages the
     # pixels that see the sample alone; turns to a fraction of a sector): views 0.046 / 0.048 (the issue's bound
-    # 0.06 on each), relit 0.042, held-out lights 0.039, ks 0.095 against the truth (0.26; the issue's 0.05 not met)
+    # 0.06 on each), relit 0.042, held-out lights 0.039, ks 0.095 against the truth (0.26). Session 43 (the NDF beyond
+    # the view's reach continued as GGX; eta between the ladder's rungs by bounded Brent): views 0.046 / 0.046,
+    # relit 0.041, held-out lights 0.039, ks 0.047 (the issue's bound 0.05)
     for view in validate["views"].values():
         assert view["heldout_rel_l2"] <= 0.055
     check = metrics(demo_run, "demo", "selfcheck")
     assert check["relit"]["rel_l2"] <= 0.048 and check["heldout"]["rel_l2"] <= 0.046 and not check["poor_fit"]
-    assert metrics(demo_run, "demo", "refine")["ks_median_rel_error"] <= 0.11
+    assert metrics(demo_run, "demo", "refine")["ks_median_rel_error"] <= 0.05
     # maps as smooth as the material: the copper's ks within a few per cent everywhere (p10 / p90 of the
     # median measured 0.968 / 1.022; before, 0.99 / 1.64: wedges of 1.5 x), and the markers black
     model = SVBRDF.load(demo_run / "results/demo/svbrdf")
