@@ -319,8 +319,8 @@ def decay_beyond_reach(ndf: np.ndarray, target: np.ndarray, grid: DirectionGrid)
     slope = np.where(ok, (n * sxy - sx * sy) / np.where(ok, den, 1.0), 0.0)
     y_last = np.maximum(d[..., last, :], TINY) ** -0.5
     relative = np.maximum(slope, 0.0) / y_last                       # per unit sin^2 theta, in units of y_last
-    fallback = np.nanmedian(np.where(ok, relative, np.nan), axis=-1, keepdims=True) if ok.any() else 0.0
-    relative = np.where(ok, relative, np.nan_to_num(np.broadcast_to(fallback, relative.shape), nan=0.0))
+    fallback = np.ma.filled(np.ma.median(np.ma.masked_array(relative, ~ok), axis=-1), 0.0)   # the other azimuths
+    relative = np.where(ok, relative, np.asarray(fallback)[..., None])
     tail = y_last[..., None, :] * (1.0 + relative[..., None, :] * (x[last + 1:, None] - x[last]))
     out = d.copy()
     out[..., last + 1:, :] = np.where(d[..., last:last + 1, :] > 0, tail ** -2.0, 0.0)

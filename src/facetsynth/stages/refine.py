@@ -398,7 +398,8 @@ def fit(model: SVBRDF, capture: RectifiedCapture, specular, valid, settings: Set
     """The pipeline's model made to reproduce its samples, in this order: one NDF per material
     (:func:`share_representatives`); eta, then the NDF's stretch, per material (:func:`choose_per_material`);
     each point's NDF turn (:func:`choose_turns`); every table that points use alone, fitted to their samples
-    (:func:`refit_tables`), and each point's turn again against them; kd and ks per point (:func:`facetsynth.refine.solve`).
+    (:func:`refit_tables`), and each point's turn again against them; kd and ks per point
+    (:func:`facetsynth.refine.solve`).
     Returns the refined model and the fit's figures."""
     t0 = time.perf_counter()
     start = model
