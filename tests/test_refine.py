@@ -307,3 +307,27 @@ def test_the_fits_figure_scores_every_model_against_the_same_samples(extreme_run
     a, b, _ = kd_ks(model, capture, spec, ok, Settings())
     fitted = samples_rel_l2(replace(model, kd=np.pi * a, ks=b), capture, spec, ok, model.kd)
     assert wrong > 1.2 * before and fitted < before
+
+
+def test_one_eta_per_material_gives_each_materials_points_their_median(extreme_run):
+    """Params' eta drifts across a material (the eq. 18 mixture of its representatives'): before the samples
+    choose, each material's visible points take their median, and nothing else changes."""
+    from dataclasses import replace
+    from facetsynth.stages.common import RectifiedCapture
+    from facetsynth.stages.refine import Settings, material_points, materials, one_eta_per_material
+    from facetsynth.svbrdf import SVBRDF
+    capture = RectifiedCapture.load(extreme_run["geometry"])
+    model = SVBRDF.load(extreme_run["svbrdf"])
+    drift = replace(model, eta=1.4 + 0.2 * np.linspace(0.0, 1.0, model.n_points))
+    settings = Settings()
+    made = one_eta_per_material(drift, capture, settings)
+    material, owner = materials(drift, settings)
+    touched = np.zeros(model.n_points, bool)
+    for m in np.unique(material):
+        points, _ = material_points(capture, owner, np.flatnonzero(material == m), 1)
+        if points.size:
+            assert np.all(made.eta[points] == np.median(drift.eta[points]))
+            touched[points] = True
+    assert touched.any() and np.ptp(drift.eta[touched]) > 0.05
+    np.testing.assert_array_equal(made.eta[~touched], drift.eta[~touched])
+    np.testing.assert_array_equal(made.ks, drift.ks)

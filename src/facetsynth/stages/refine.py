@@ -304,6 +304,21 @@ def ladder_minimum(ladder: np.ndarray, sse: np.ndarray, error) -> tuple[float, f
     return float(ladder[k]), float(sse[k])
 
 
+def one_eta_per_material(model: SVBRDF, capture: RectifiedCapture, settings: Settings) -> SVBRDF:
+    """``model`` with each material's visible points at the median of their eta: the pipeline's eta made one
+    per material before the samples choose theirs (:func:`choose_per_material`), so that where they do not
+    choose, a material still has one. Params gives a point the eq. 18 mixture of its representatives' eta,
+    which drifts across a material: the demo's paint from 1.506 to 1.467 top to bottom with a step at its
+    middle row, and ks made up for it (a seam across the disc in the ks map, 0.332 to 0.363)."""
+    material, owner = materials(model, settings)
+    eta = model.eta.copy()
+    for m in np.unique(material):
+        points, _ = material_points(capture, owner, np.flatnonzero(material == m), 1)
+        if points.size:
+            eta[points] = np.median(eta[points])
+    return replace(model, eta=eta)
+
+
 def with_eta(model: SVBRDF, representatives: np.ndarray, points: np.ndarray, eta: float) -> SVBRDF:
     """``model`` with eta = ``eta`` at ``points`` (one material's)."""
     out = model.eta.copy()
@@ -396,7 +411,8 @@ def choose_turns(model: SVBRDF, capture: RectifiedCapture, specular, valid, sett
 def fit(model: SVBRDF, capture: RectifiedCapture, specular, valid, settings: Settings = Settings(),
         threads: int = 1) -> tuple[SVBRDF, dict]:
     """The pipeline's model made to reproduce its samples, in this order: one NDF per material
-    (:func:`share_representatives`); eta, then the NDF's stretch, per material (:func:`choose_per_material`);
+    (:func:`share_representatives`); one eta per material (:func:`one_eta_per_material`), then the samples'
+    eta and the NDF's stretch, per material (:func:`choose_per_material`);
     each point's NDF turn (:func:`choose_turns`); every table that points use alone, fitted to their samples
     (:func:`refit_tables`), and each point's turn again against them; kd and ks per point
     (:func:`facetsynth.refine.solve`).
@@ -404,6 +420,7 @@ def fit(model: SVBRDF, capture: RectifiedCapture, specular, valid, settings: Set
     t0 = time.perf_counter()
     start = model
     model, shared = share_representatives(model, capture, specular, valid, settings)
+    model = one_eta_per_material(model, capture, settings)
     model, etas = choose_per_material(model, capture, specular, valid, settings, "eta", settings.eta, with_eta)
     model, stretches = choose_per_material(model, capture, specular, valid, settings, "stretch", settings.stretch,
                                            with_stretch)
