@@ -269,9 +269,12 @@ def choose_per_material(model: SVBRDF, capture: RectifiedCapture, specular, vali
         def error(trial: SVBRDF) -> float:
             return fitted_error(trial, capture, specular, valid, index, settings.ridge)
 
+        def error_at(value: float) -> float:
+            return error(apply(model, members, points, value))
+
         current = error(model)
-        sse = np.array([error(apply(model, members, points, v)) for v in ladder])
-        best, best_sse = ladder_minimum(ladder, sse, lambda v: error(apply(model, members, points, v)))
+        sse = np.array([error_at(v) for v in ladder])
+        best, best_sse = ladder_minimum(ladder, sse, error_at)
         chosen = apply(model, members, points, best)
         taken = best_sse < (1.0 - settings.material_margin) * current
         if taken:
