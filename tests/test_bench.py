@@ -59,7 +59,7 @@ def preset_values(repo, name):
 def test_balanced_is_the_default_and_keeps_the_recorded_defaults(repo, workdir):
     values = probed(dry_run(workdir))
     assert values == preset_values(repo, "balanced")
-    assert values == {"rectify": "auto", "resample": [1.3, [16, 32]],
+    assert values == {"rectify": "auto", "resample": [1.3, [16, 48]],
                       "synthesize": [4096, 12]}
 
 

@@ -325,13 +325,17 @@ MITSUBA_TILES_BSDF = {"type": "blendbsdf", "weight": 0.5,
 #   measurement plus 15 % would pass it), held-out lights NOT met (bound 0.138, the measurement plus 15 %),
 #   paper view met (bound 0.15, the measurement plus 15 %). Session 42: 0.070 / 0.103 / 0.127 / 0.484 on the
 #   pixels that see the sample alone (0.072 / 0.132 with the pixels across its edge); held-out lights NOT met
-#   (0.10), bound 0.118, the measurement plus 15 %.
+#   (0.10), bound 0.118, the measurement plus 15 %. Session 44 (the balanced preset's grid up to 48 rings:
+#   the satin's narrow peak takes 48 x 192): 0.052 / 0.087 / 0.115 / 0.480, every bound of the issue met; the
+#   bounds are the measurement plus 15 % and never above the issue's: 0.06 / 0.10 / 0.133. Copper keeps 32 x 128
+#   (no figure moved); tiles take 40 x 160: 0.021 / 0.029 / 0.021 / 0.019 (session 43: 0.022 / 0.034 / 0.023 /
+#   0.023).
 # Every case also renders OTHER_VIEW (config.yaml's theta30, an elevation 23 deg above the fitting camera's
 # 53.1 deg; the paper's view is at 50.9 deg), reported (printed, and recorded as a test property), not asserted.
 OTHER_VIEW = (30.0, 20.0)
 NATIVE = {"copper": (COPPER, "turned", (0.037, 0.051, 0.036)),
           "tiles": (MITSUBA_TILES_BSDF, "tiles", (0.025, 0.038, 0.025)),
-          "rgl-quadrants": (mitsuba_capture.scene_regions(RGL_QUADRANTS)["regions"], 0.0, (0.08, 0.118, 0.146))}
+          "rgl-quadrants": (mitsuba_capture.scene_regions(RGL_QUADRANTS)["regions"], 0.0, (0.06, 0.10, 0.133))}
 
 
 @pytest.fixture(scope="module", params=sorted(NATIVE))

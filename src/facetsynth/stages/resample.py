@@ -79,7 +79,7 @@ class Outputs(RuleFiles):
 class Settings(StageSettings):
     """The stage's knobs: config ``resample`` and ``partial_ndf.grazing_deg`` (workflow/schemas/config.schema.yaml)."""
     cells_per_lobe: float = 1.3               # elevation rings per narrow lobe half-width
-    n_theta_range: tuple[int, int] = (16, 32)  # [min, max] rings
+    n_theta_range: tuple[int, int] = (16, 48)  # [min, max] rings
     grazing_deg: float = 80.0                 # lights beyond it are left out of the lobe widths (as in eq. 11)
 
     def direction_grid(self, capture: RectifiedCapture, spec, ok) -> tuple[DirectionGrid, dict]:
