@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -213,3 +215,29 @@ def test_degenerate_inputs(rng):
     for a, c in zip((got.normal, got.albedo, got.inliers, got.fallback),
                     (small.normal, small.albedo, small.inliers, small.fallback)):
         np.testing.assert_array_equal(a, c)
+
+
+def test_a_flat_normal_map_is_the_plane_frame(rng):
+    """separate writes +z normals for a flat sample (and under point lights, where `auto` estimates none): the
+    capture then gives no shading frames, so no stage turns every direction by the identity, and the directions
+    are bitwise those of a capture without normals; one tilted point turns them all into frames."""
+    from facetsynth.plane import PlaneGrid
+    from facetsynth.stages.common import RectifiedCapture
+    grid = PlaneGrid(0.05, 0.05, 4, 3)
+    lights = np.column_stack([rng.uniform(-0.2, 0.2, (7, 2)), rng.uniform(0.1, 0.3, 7), np.ones(7)])
+    plain = RectifiedCapture(folder=None, grid=grid, visible=np.ones(12, bool), lights=lights,
+                             light_intensities=np.ones((7, 3)), view_point=np.array([0.1, -0.2, 0.5, 1.0]),
+                             frame_files=[], truth_scene=None)
+    flat = dataclasses.replace(plain, normals=np.tile([0.0, 0.0, 1.0], (12, 1)))
+    index = np.arange(2, 9)
+    assert plain.frames(index) is None and flat.frames(index) is None and not flat.tilted
+    np.testing.assert_array_equal(flat.light_directions(index)[0], plain.light_directions(index)[0])
+    np.testing.assert_array_equal(flat.view_directions(True, index), plain.view_directions(True, index))
+    normals = flat.normals.copy()
+    normals[5] = [0.1, 0.0, np.sqrt(0.99)]
+    tilted = dataclasses.replace(plain, normals=normals)
+    assert tilted.tilted and tilted.frames(index).shape == (7, 3, 3)
+    wi = tilted.light_directions(index)[0]
+    np.testing.assert_allclose(wi[3], to_local(shading_frames(normals[5]), plain.light_directions(index)[0][3]),
+                               atol=1e-15)
+    np.testing.assert_array_equal(wi[:3], plain.light_directions(index)[0][:3])     # +z points: the identity

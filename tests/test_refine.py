@@ -240,7 +240,7 @@ def test_a_table_fitted_to_samples_of_turned_points_recovers_the_lobe_between_on
     table to 2 % where the samples reach, while a prior 3 x too wide is what it started from (the test can
     fail); cells no sample reaches keep the prior exactly."""
     from facetsynth.grid import turn
-    from facetsynth.refine import add_table_normal_equations, solve_table
+    from facetsynth.refine import solve_table, table_normal_equations
     grid = DirectionGrid(16, 64)
     truth = _ggx_table(grid, 0.1, 0.3).ravel()
     prior = _ggx_table(grid, 0.3, 0.9).ravel()
@@ -254,16 +254,18 @@ def test_a_table_fitted_to_samples_of_turned_points_recovers_the_lobe_between_on
     cells, w = look.cells.T, look.weights.T
     coef = np.tile(rng.uniform(0.5, 1.5, (local.shape[0], 1)), (1, 3)) * [0.7, 0.6, 0.5]
     r = coef * np.sum(truth[cells] * w, axis=-1)[:, None]
-    m, v = np.zeros((truth.size, truth.size)), np.zeros(truth.size)
+    m, v = 0, 0
     for half in np.array_split(np.arange(r.shape[0]), 2):        # batches add up
-        add_table_normal_equations(m, v, cells[half], w[half], coef[half], r[half], np.ones_like(r[half]))
+        batch_m, batch_v = table_normal_equations(cells[half], w[half], coef[half], r[half], np.ones_like(r[half]),
+                                                  truth.size)
+        m, v = m + batch_m, v + batch_v
     fitted = solve_table(m, v, prior, 1e-6)
-    seen = np.diag(m) > 0.05 * np.diag(m).max()
+    seen = m.diagonal() > 0.05 * m.diagonal().max()
     assert seen.sum() > 100
     err = np.sqrt(np.sum((fitted - truth)[seen] ** 2) / np.sum(truth[seen] ** 2))
     assert err < 0.02
     assert np.sqrt(np.sum((prior - truth)[seen] ** 2) / np.sum(truth[seen] ** 2)) > 0.5
-    unseen = np.flatnonzero(np.diag(m) == 0)
+    unseen = np.flatnonzero(m.diagonal() == 0)
     np.testing.assert_allclose(fitted[unseen], np.clip(prior[unseen], 0, None), rtol=1e-9, atol=1e-12)
     # the samples' own error after the fit is what the least squares promise: below that of the truth's table
     # plus nothing (exact samples of a bilinear table: zero)
@@ -334,24 +336,31 @@ def test_one_eta_per_material_gives_each_materials_points_their_median(extreme_r
 
 
 def test_the_sparse_table_solve_is_the_dense_one():
-    """solve_table solves its normal equations sparse (they couple only neighbouring cells): on the equations of
-    random half vectors on 16 x 64 it equals the dense solve of the same system to round-off (measured 5e-15
-    relative); the ridge keeps unseen cells at the prior."""
+    """The table's normal equations are built and solved sparse (they couple only neighbouring cells): on random
+    half vectors on 16 x 64 they equal the equations written out dense sample by sample, and the solve equals
+    the dense solve of the same system to round-off (measured 5e-15 relative); the ridge keeps unseen cells at
+    the prior."""
     from facetsynth.grid import DirectionGrid
-    from facetsynth.refine import add_table_normal_equations, solve_table
+    from facetsynth.refine import solve_table, table_normal_equations
     rng = np.random.default_rng(3)
     grid = DirectionGrid(16, 64)
     n_cells = grid.n_theta * grid.n_phi
     h = rng.normal(size=(5000, 3))
     h[:, 2] = 3 * np.abs(h[:, 2]) + 2          # near the pole: the outer rings see no sample
     look = grid.bilinear(h / np.linalg.norm(h, axis=1, keepdims=True))
-    m, v = np.zeros((n_cells, n_cells)), np.zeros(n_cells)
-    add_table_normal_equations(m, v, look.cells.T, look.weights.T, rng.uniform(0.1, 1, (5000, 3)),
-                               rng.uniform(0, 1, (5000, 3)), rng.uniform(0.5, 1, (5000, 3)))
+    coef, r, u = rng.uniform(0.1, 1, (5000, 3)), rng.uniform(0, 1, (5000, 3)), rng.uniform(0.5, 1, (5000, 3))
+    m, v = table_normal_equations(look.cells.T, look.weights.T, coef, r, u, n_cells)
+    cells, w = look.cells.T, look.weights.T        # the normal equations written out dense, sample by sample
+    q, p = np.sum(u * coef * coef, axis=-1), np.sum(u * coef * r, axis=-1)
+    dense_m, dense_v = np.zeros((n_cells, n_cells)), np.zeros(n_cells)
+    for s in range(cells.shape[0]):
+        np.add.at(dense_m, (cells[s][:, None], cells[s][None, :]), q[s] * np.outer(w[s], w[s]))
+        np.add.at(dense_v, cells[s], p[s] * w[s])
+    assert np.allclose(m.toarray(), dense_m, rtol=1e-12, atol=0) and np.allclose(v, dense_v, rtol=1e-12, atol=0)
     prior = rng.uniform(0, 1, n_cells)
-    diag = np.diag(m)
+    diag = np.diag(dense_m)
     lam = 0.01 * (diag + diag[diag > 0].mean())
-    dense = np.clip(np.linalg.solve(m + np.diag(lam), v + lam * prior), 0, None)
+    dense = np.clip(np.linalg.solve(dense_m + np.diag(lam), dense_v + lam * prior), 0, None)
     fitted = solve_table(m, v, prior, 0.01)
     assert np.abs(fitted - dense).max() <= 1e-10 * np.abs(dense).max()
     unseen = diag == 0

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, fields
+from functools import cached_property
 from pathlib import Path
 from typing import ClassVar
 
@@ -103,19 +104,25 @@ class RectifiedCapture:
         centre."""
         points = self.points[index]
         o = towards(points if per_point else np.zeros_like(points), self.view_point)
-        return o if self.normals is None else to_local(shading_frames(self.normals[index]), o)
+        frames = self.frames(index)
+        return o if frames is None else to_local(frames, o)
 
     def frames(self, index) -> np.ndarray | None:
         """The shading frames (p, 3, 3) of the points ``index`` (:func:`facetsynth.normals.shading_frames`), None
-        without normals: the world's directions of a point's grid are R^T d."""
-        return None if self.normals is None else shading_frames(self.normals[index])
+        without normals, or when every normal is +z (a flat sample's: the frames would be the identity, exactly,
+        and every stage would turn every direction by it): the world's directions of a point's grid are R^T d."""
+        return None if not self.tilted else shading_frames(self.normals[index])
+
+    @cached_property
+    def tilted(self) -> bool:
+        """Whether any point's shading normal differs from +z."""
+        return self.normals is not None and bool(np.any(self.normals[:, :2] != 0))
 
     def light_directions(self, index) -> tuple[np.ndarray, np.ndarray]:
         """i (p, F, 3) and |P - x|^2 (p, F) (1 for directional lights) of the points ``index``, eq. 8."""
         wi, r2 = light_geometry(self.points[index][:, None, :], self.lights[None])
-        if self.normals is not None:
-            wi = to_local(shading_frames(self.normals[index])[:, None], wi)
-        return wi, r2
+        frames = self.frames(index)
+        return (wi if frames is None else to_local(frames[:, None], wi)), r2
 
     def truth(self) -> MaterialMaps | None:
         """The true SVBRDF parameters at every point, for virtual captures."""

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 from scipy.optimize import minimize_scalar
+from scipy import sparse
 from tqdm import tqdm
 
 from ..errors import InputError
@@ -31,8 +32,8 @@ from ..microfacet import fresnel, half_vector
 from ..cluster import material_groups, relative_rotation
 from ..synthesis import pairwise_distance, rotate_tuple
 from ..params import normalise, projected_area
-from ..refine import (NormalSums, add_table_normal_equations, best_turns, owned_kd,
-                      radiance_weights, solve, solve_table, stretch)
+from ..refine import (NormalSums, best_turns, owned_kd, radiance_weights, solve, solve_table, stretch,
+                      table_normal_equations)
 
 from ..svbrdf import SVBRDF
 from .common import (TILE_POINTS, RectifiedCapture, RuleFiles, StageSettings, analytic_points, median_rel_error,
@@ -470,7 +471,7 @@ def refit_tables(model: SVBRDF, capture: RectifiedCapture, specular, valid,
     :func:`choose_turns`: one per material) fitted to the samples of up to ``settings.ndf_points`` of them
     (evenly strided), each sample read in its point's turned frame, with the points' kd, ks (fitted to their
     samples first, :func:`facetsynth.refine.solve`), eta and A(k) fixed
-    (:func:`facetsynth.refine.add_table_normal_equations`, :func:`facetsynth.refine.solve_table`: the
+    (:func:`facetsynth.refine.table_normal_equations`, :func:`facetsynth.refine.solve_table`: the
     completed table is the prior where the samples say little); renormalised, and A(k) made anew. One
     point's samples leave gaps between its lights' half vectors, which synthesis filled by interpolation;
     the points of a table turn it, so together they measure it densely (issue 29: the held-out lights)."""
@@ -486,7 +487,7 @@ def refit_tables(model: SVBRDF, capture: RectifiedCapture, specular, valid,
     for k in np.unique(table_of[alone & capture.visible]):
         points = np.flatnonzero(alone & capture.visible & (table_of == k))
         index = strided(points, settings.ndf_points)
-        m, v = np.zeros((n_cells, n_cells)), np.zeros(n_cells)
+        m, v = sparse.csr_matrix((n_cells, n_cells)), np.zeros(n_cells)
         for tile in tqdm(list(tiles(index.size)), desc=f"refine: NDF table {k}", unit="tile"):
             idx = index[tile]
             pp, _, i, u, rho_s, views = samples(capture, specular, valid, idx)
@@ -496,7 +497,9 @@ def refit_tables(model: SVBRDF, capture: RectifiedCapture, specular, valid,
             h, denom = half_and_denominator(model, idx, pp, i, views)
             look = grid.bilinear(turn(h, rotation[at]))
             r = rho_s + model.kd[at] / np.pi - a[pp]      # the samples' rho (point_sums' y) less kd/pi
-            add_table_normal_equations(m, v, look.cells.T, look.weights.T, b[pp] * denom[:, None], r, u)
+            tile_m, tile_v = table_normal_equations(look.cells.T, look.weights.T, b[pp] * denom[:, None], r, u,
+                                                    n_cells)
+            m, v = m + tile_m, v + tile_v
         table = solve_table(m, v, model.ndf[k].astype(float).ravel(), settings.ndf_ridge).reshape(grid.shape)
         normalised, _ = normalise(table[None], grid)
         ndf[k] = normalised[0]
