@@ -21,11 +21,10 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import minimize_scalar
 from scipy import sparse
-from tqdm import tqdm
 
 from ..errors import InputError
 from ..fileio import atomic_dir, read_npy, write_json
-from ..frames import map_frames
+from ..frames import imap, map_frames
 from ..metrics import finite_or_none
 from ..grid import turn
 from ..microfacet import fresnel, half_vector
@@ -249,15 +248,15 @@ def fitted_error(model: SVBRDF, capture: RectifiedCapture, specular, valid, inde
 
 
 def choose_per_material(model: SVBRDF, capture: RectifiedCapture, specular, valid, settings: Settings, what: str,
-                        ladder, apply) -> tuple[SVBRDF, list[dict]]:
+                        ladder, apply, threads: int = 1) -> tuple[SVBRDF, list[dict]]:
     """One parameter per material (representatives grouped by kd, :func:`facetsynth.cluster.material_groups`,
     a point belonging to its largest eq. 18 weight's), chosen by the samples: each value of ``ladder`` is
     tried on up to ``settings.material_points`` of the material's points (evenly strided), scored by the
     squared radiance error left by their kd, ks fit, and the minimum between the best one's neighbours
     taken (:func:`ladder_minimum`); it replaces the pipeline's value where it lowers that error by
     more than ``settings.material_margin`` (elsewhere the samples do not tell the values apart, and the
-    pipeline's stays). ``apply(model, representatives, points, value)`` is the model with the value set.
-    Returns the model with every material's choice and a record per material."""
+    pipeline's stays). ``apply(model, representatives, points, value)`` is the model with the value set. The
+    ladder's values are tried on ``threads`` threads. Returns the model with every material's choice and a record per material."""
     material, owner = materials(model, settings)
     ladder = np.asarray(sorted(ladder), float)
     records = []
@@ -274,7 +273,7 @@ def choose_per_material(model: SVBRDF, capture: RectifiedCapture, specular, vali
             return error(apply(model, members, points, value))
 
         current = error(model)
-        sse = np.array([error_at(v) for v in ladder])
+        sse = np.array(map_frames(error_at, list(ladder), threads, f"refine: {what} of material {m}", unit="value"))
         best, best_sse = ladder_minimum(ladder, sse, error_at)
         chosen = apply(model, members, points, best)
         taken = best_sse < (1.0 - settings.material_margin) * current
@@ -425,11 +424,12 @@ def fit(model: SVBRDF, capture: RectifiedCapture, specular, valid, settings: Set
     start = model
     model, shared = share_representatives(model, capture, specular, valid, settings)
     model = one_eta_per_material(model, capture, settings)
-    model, etas = choose_per_material(model, capture, specular, valid, settings, "eta", settings.eta, with_eta)
+    model, etas = choose_per_material(model, capture, specular, valid, settings, "eta", settings.eta, with_eta,
+                                      threads)
     model, stretches = choose_per_material(model, capture, specular, valid, settings, "stretch", settings.stretch,
-                                           with_stretch)
+                                           with_stretch, threads)
     model, turns = choose_turns(model, capture, specular, valid, settings, threads)
-    model, tables = refit_tables(model, capture, specular, valid, settings)
+    model, tables = refit_tables(model, capture, specular, valid, settings, threads)
     if tables:      # the turns again, against the tables the samples made (ggx-tiles' held-out lights 0.071 -> 0.064)
         model, turns["after_tables"] = choose_turns(model, capture, specular, valid, settings, threads)
     a, b, fitted = kd_ks(model, capture, specular, valid, settings, threads)
@@ -465,8 +465,8 @@ def kd_ks(model: SVBRDF, capture: RectifiedCapture, specular, valid, settings: S
     return a, b, fitted
 
 
-def refit_tables(model: SVBRDF, capture: RectifiedCapture, specular, valid,
-                 settings: Settings) -> tuple[SVBRDF, list[dict]]:
+def refit_tables(model: SVBRDF, capture: RectifiedCapture, specular, valid, settings: Settings,
+                 threads: int = 1) -> tuple[SVBRDF, list[dict]]:
     """Every NDF table that points use alone (eq. 18 weight 1, after :func:`share_representatives` and
     :func:`choose_turns`: one per material) fitted to the samples of up to ``settings.ndf_points`` of them
     (evenly strided), each sample read in its point's turned frame, with the points' kd, ks (fitted to their
@@ -474,7 +474,8 @@ def refit_tables(model: SVBRDF, capture: RectifiedCapture, specular, valid,
     (:func:`facetsynth.refine.table_normal_equations`, :func:`facetsynth.refine.solve_table`: the
     completed table is the prior where the samples say little); renormalised, and A(k) made anew. One
     point's samples leave gaps between its lights' half vectors, which synthesis filled by interpolation;
-    the points of a table turn it, so together they measure it densely (issue 29: the held-out lights)."""
+    the points of a table turn it, so together they measure it densely (issue 29: the held-out lights). Tiles
+    on ``threads`` threads."""
     if settings.ndf_ridge <= 0:
         return model, []
     grid, n = model.grid, capture.n_points
@@ -487,8 +488,8 @@ def refit_tables(model: SVBRDF, capture: RectifiedCapture, specular, valid,
     for k in np.unique(table_of[alone & capture.visible]):
         points = np.flatnonzero(alone & capture.visible & (table_of == k))
         index = strided(points, settings.ndf_points)
-        m, v = sparse.csr_matrix((n_cells, n_cells)), np.zeros(n_cells)
-        for tile in tqdm(list(tiles(index.size)), desc=f"refine: NDF table {k}", unit="tile"):
+
+        def equations(tile: slice, index=index) -> tuple[sparse.csr_matrix, np.ndarray]:
             idx = index[tile]
             pp, _, i, u, rho_s, views = samples(capture, specular, valid, idx)
             a, b = solve(sums_of(model, idx, pp, i, u, rho_s, views), model.kd[idx] / np.pi, model.ks[idx],
@@ -497,8 +498,11 @@ def refit_tables(model: SVBRDF, capture: RectifiedCapture, specular, valid,
             h, denom = half_and_denominator(model, idx, pp, i, views)
             look = grid.bilinear(turn(h, rotation[at]))
             r = rho_s + model.kd[at] / np.pi - a[pp]      # the samples' rho (point_sums' y) less kd/pi
-            tile_m, tile_v = table_normal_equations(look.cells.T, look.weights.T, b[pp] * denom[:, None], r, u,
-                                                    n_cells)
+            return table_normal_equations(look.cells.T, look.weights.T, b[pp] * denom[:, None], r, u, n_cells)
+
+        m, v = sparse.csr_matrix((n_cells, n_cells)), np.zeros(n_cells)
+        for tile_m, tile_v in imap(equations, list(tiles(index.size)), threads, f"refine: NDF table {k}",
+                                   unit="tile"):      # in order: the sums are those of one thread
             m, v = m + tile_m, v + tile_v
         table = solve_table(m, v, model.ndf[k].astype(float).ravel(), settings.ndf_ridge).reshape(grid.shape)
         normalised, _ = normalise(table[None], grid)
