@@ -189,6 +189,24 @@ def test_noise_free_demo_predicts_held_out_views_and_fits_stencils(demo_run):
     assert len(list((demo_run / "results/demo/stencil_fit/models/shaders").glob("*.brdf"))) == len(models)
 
 
+@pytest.mark.scenes
+def test_the_demo_as_make_run_fits_it_meets_issue_29(repo, tmp_path):
+    """Issue 29's bounds on the demo as `make run` fits it (default sensor noise, seed 0, native resolution):
+    ks against the truth at most 0.05, held-out views at most 0.06 each, and the self-check. Measured 2026-12-06:
+    ks 0.019, views 0.046 / 0.046, relit 0.041, held-out lights 0.039. ks alone rides on eta's valley (ks F0 is
+    what the samples fix): the noise-free run of ``demo_run`` chooses eta 1.823 / 1.56 (truth 1.8 / 1.5) and
+    its ks is 0.073, asserted there at 0.085; this run chooses 1.802 / 1.538."""
+    workdir = make_workdir(repo, tmp_path / "wf", "demo\tvirtual\tresources/scenes/demo.yaml\t\n", resolution=None)
+    done = snakemake(workdir, "results/demo/refine/metrics.json", "results/demo/selfcheck/metrics.json",
+                     "results/demo/validate/metrics.json")
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert metrics(workdir, "demo", "refine")["ks_median_rel_error"] <= 0.05
+    for view in metrics(workdir, "demo", "validate")["views"].values():
+        assert view["heldout_rel_l2"] <= 0.055
+    check = metrics(workdir, "demo", "selfcheck")
+    assert check["relit"]["rel_l2"] <= 0.047 and check["heldout"]["rel_l2"] <= 0.045 and not check["poor_fit"]
+
+
 def test_noisy_capture_stays_within_three_times_the_targets(repo, tmp_path):
     """Default sensor noise on the tiny rig: the figures stay within 3x of the noise-free targets."""
     from facetsynth.stages import hdr
