@@ -151,17 +151,24 @@ class Bilinear:
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def bilinear_at(table: np.ndarray, t: float, p: float, n_theta: int, n_phi: int) -> float:
-    """:class:`Bilinear` for one direction, in compiled kernels: ``table`` (n_theta * n_phi,) flat, (t, p) its
-    continuous cell coordinates (:meth:`DirectionGrid.coordinates`); theta clamped, phi periodic."""
+def bilinear_stencil(t: float, p: float, n_theta: int, n_phi: int) -> tuple[int, int, int, int, float, float]:
+    """:meth:`DirectionGrid.bilinear`'s stencil of one direction, in compiled kernels: at continuous cell
+    coordinates (t, p) (:meth:`DirectionGrid.coordinates`), the rings t0, t1 and sectors p0, p1 around it and the
+    weights ft of t1 and fp of p1; theta clamped to the rings, phi periodic."""
     t = min(max(t, 0.0), n_theta - 1.0)
     t0 = min(int(np.floor(t)), n_theta - 2) if n_theta > 1 else 0
     ft = t - t0 if n_theta > 1 else 0.0
     t1 = min(t0 + 1, n_theta - 1)
     fp0 = np.floor(p)
-    fp = p - fp0
     p0 = int(fp0) % n_phi
-    p1 = (p0 + 1) % n_phi
+    return t0, t1, p0, (p0 + 1) % n_phi, ft, p - fp0
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def bilinear_at(table: np.ndarray, t: float, p: float, n_theta: int, n_phi: int) -> float:
+    """:class:`Bilinear` for one direction, in compiled kernels: ``table`` (n_theta * n_phi,) flat, (t, p) its
+    continuous cell coordinates (:func:`bilinear_stencil`)."""
+    t0, t1, p0, p1, ft, fp = bilinear_stencil(t, p, n_theta, n_phi)
     return ((1 - ft) * ((1 - fp) * table[t0 * n_phi + p0] + fp * table[t0 * n_phi + p1])
             + ft * ((1 - fp) * table[t1 * n_phi + p0] + fp * table[t1 * n_phi + p1]))
 

@@ -66,7 +66,7 @@ import numpy as np
 
 from .errors import InputError
 from .fileio import read_exr, read_json, read_npy, write_exr, write_json, write_npy
-from .grid import DirectionGrid, turn
+from .grid import DirectionGrid, bilinear_stencil, turn
 from .microfacet import fresnel, half_vector
 from .normals import shading_frames, to_local
 from .partial_ndf import SHADOWING_GRID
@@ -83,20 +83,13 @@ MAX_GRID_CELLS = 1 << 20   # a plane or direction grid's side on load: far beyon
 def mixture_at(table, neighbours, weights, index, t, p, n_theta, n_phi):
     """Eq. 18's mixture sum_k w(x, k) table[j(x, k)] at continuous cell coordinates (t, p) (N,)
     (:meth:`DirectionGrid.coordinates`) for points ``index`` (N,): each table read as
-    :class:`facetsynth.grid.Bilinear` reads it (theta clamped, phi periodic), with its arithmetic in its order,
+    :class:`facetsynth.grid.Bilinear` reads it (:func:`facetsynth.grid.bilinear_stencil`), with its arithmetic in its order,
     so the result is bitwise numpy's (tests/test_svbrdf.py). ``table`` (R, cells), ``neighbours`` and
     ``weights`` (P, K); a zero weight reads nothing."""
     out = np.zeros(index.size)
     for s in range(index.size):
         x = index[s]
-        tc = min(max(t[s], 0.0), n_theta - 1.0)
-        t0 = min(int(np.floor(tc)), n_theta - 2) if n_theta > 1 else 0
-        ft = tc - t0 if n_theta > 1 else 0.0
-        t1 = min(t0 + 1, n_theta - 1)
-        floor_p = np.floor(p[s])
-        fp = p[s] - floor_p
-        p0 = int(floor_p) % n_phi
-        p1 = (p0 + 1) % n_phi
+        t0, t1, p0, p1, ft, fp = bilinear_stencil(t[s], p[s], n_theta, n_phi)
         cells = (t0 * n_phi + p0, t0 * n_phi + p1, t1 * n_phi + p0, t1 * n_phi + p1)
         bw = ((1 - ft) * (1 - fp), (1 - ft) * fp, ft * (1 - fp), ft * fp)
         acc = 0.0
