@@ -95,6 +95,23 @@ def test_cells_at_the_samples_edge_average_the_samples_pixels_alone(camera):
     assert not seen.any() and np.all(cells == 0)
 
 
+def test_sample_pixels_whole_and_by_centre_in_chunks(camera):
+    """One function counts the pixels on the sample two ways: ``whole`` (every corner on it: rectify's weights,
+    the self-check's mask) and by the pixel's centre (rectify's native resolution, hdr's and capture's statistics);
+    the whole pixels are a subset of the centres', short of them by about one ring of edge pixels, and computing
+    them a few rows at a time changes nothing."""
+    width = 0.1
+    whole, centre = sample_pixels(camera, width, width), sample_pixels(camera, width, width, whole=False)
+    assert whole.dtype == bool and not (whole & ~centre).any()
+    xy = camera.pixel_plane_points(1)[..., :2]
+    np.testing.assert_array_equal(centre, (np.abs(xy) <= width / 2).all(axis=-1))
+    ring = centre.sum() - whole.sum()
+    assert 0 < ring < 2 * (centre.any(axis=0).sum() + centre.any(axis=1).sum())
+    for rows in (1, 7):
+        np.testing.assert_array_equal(sample_pixels(camera, width, width, chunk_rows=rows), whole)
+        np.testing.assert_array_equal(sample_pixels(camera, width, width, whole=False, chunk_rows=rows), centre)
+
+
 def test_a_camera_that_sees_only_the_sample_takes_every_pixel():
     """A dome's capture (rti.lp's stated default: orthographic, top-down, the image the sample, 0.1 mm pixels):
     every pixel sees the sample alone, its outer corners on the edge up to rounding, and every cell of the native

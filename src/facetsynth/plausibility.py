@@ -22,7 +22,7 @@ import numpy as np
 
 from . import manifest
 from .errors import InputError
-from .rectify import on_sample
+from .rectify import sample_pixels
 
 # --- the sample against the camera's view of it ---------------------------------------------------------
 
@@ -127,23 +127,6 @@ def _axis_view(H: np.ndarray, axis: int, length: float, width: int, height: int)
     return AxisView(length=length, low=low, high=high, pixels=pixels if math.isfinite(pixels) else 0.0)
 
 
-def sample_pixels(capture: dict[str, Any], chunk_rows: int = 512) -> np.ndarray:
-    """(height, width) bool: the pixels whose ray meets the sample plane in front of the camera, inside the
-    sample's width x height about the origin (as rectify's native resolution counts them)."""
-    camera = manifest.camera(capture)
-    w, h = capture["sample"]["width"], capture["sample"]["height"]
-    Hinv = np.linalg.inv(camera.plane_homography())
-    cols = np.arange(camera.width, dtype=np.float64)
-    out = np.zeros((camera.height, camera.width), bool)
-    for start in range(0, camera.height, chunk_rows):
-        rows = np.arange(start, min(start + chunk_rows, camera.height), dtype=np.float64)
-        cc, rr = np.meshgrid(cols, rows)
-        xyw = np.stack([cc, rr, np.ones_like(cc)], axis=-1) @ Hinv.T
-        with np.errstate(all="ignore"):
-            out[start:start + len(rows)] = on_sample(camera, xyw[..., :2] / xyw[..., 2:], w, h)
-    return out
-
-
 def check_geometry(capture: dict[str, Any], path: str | Path | None) -> list[str]:
     """The sample's size against the camera's view of it, and the lights' distances against the sample:
     InputError for what cannot be a capture, the warnings for what is doubtful."""
@@ -180,7 +163,7 @@ def _sample_against_view(capture: dict[str, Any], path: str | Path | None) -> li
                                                        f"{view.pixels:.2g} pixel(s) in the image (fewer than "
                                                        f"{MIN_PIXELS_ACROSS:g}): nothing to fit; a size typed in "
                                                        "too small a unit?")
-    mask = sample_pixels(capture)
+    mask = sample_pixels(camera, w, h, whole=False)
     on_sample = int(mask.sum())
     uv = camera.project(corners)
     x, y = uv[:, 0], uv[:, 1]

@@ -48,18 +48,28 @@ def warp_to_plane(image: np.ndarray, camera: Camera, grid: PlaneGrid, filtername
     return dst.get_pixels(oiio.FLOAT).reshape(grid.rows, grid.cols, image.shape[-1])
 
 
-def sample_pixels(camera: Camera, width: float, height: float) -> np.ndarray:
-    """(H, W) float32: 1 for the pixels that see nothing but the sample, 0 elsewhere: all four corners meet the
-    plane ahead of the camera inside its ``width`` x ``height`` about the origin (the plane's image of the
-    rectangle is convex, so the whole pixel is inside; corners on the edge count, :data:`EDGE_SLACK`). A pixel
-    across the sample's edge mixes it with the background and is no measurement of either (issue 29: the
-    demo's far row of points, half the truth's kd and ks, was drawn by such pixels)."""
-    cols, rows = np.meshgrid(np.arange(camera.width + 1) - 0.5, np.arange(camera.height + 1) - 0.5)
-    corners = np.stack([cols, rows, np.ones_like(cols)], axis=-1) @ np.linalg.inv(camera.plane_homography()).T
-    with np.errstate(divide="ignore", invalid="ignore"):
-        xy = corners[..., :2] / corners[..., 2:]
-    inside = on_sample(camera, xy, width, height, slack=EDGE_SLACK * max(width, height))   # rounding: on the edge
-    return (inside[:-1, :-1] & inside[:-1, 1:] & inside[1:, :-1] & inside[1:, 1:]).astype(np.float32)
+def sample_pixels(camera: Camera, width: float, height: float, whole: bool = True,
+                  chunk_rows: int = 512) -> np.ndarray:
+    """(H, W) bool: the pixels that see the sample, the ``width`` x ``height`` about the origin of the plane,
+    ahead of the camera. ``whole``: all four corners of the pixel on it, so the whole pixel is (the plane's image
+    of the rectangle is convex; corners on the edge count, :data:`EDGE_SLACK`): a pixel across the sample's edge
+    mixes it with the background and is no measurement of either (issue 29: the demo's far row of points, half
+    the truth's kd and ks, was drawn by such pixels). Otherwise the pixel's centre on it (the pixels rectify's
+    native resolution counts, and hdr's and capture's statistics read). Computed ``chunk_rows`` rows at a time
+    (a 50-megapixel camera's plane points would take 1.2 GB at once)."""
+    to_plane = np.linalg.inv(camera.plane_homography())
+    offset = 0.5 if whole else 0.0
+    slack = EDGE_SLACK * max(width, height) if whole else 0.0      # rounding: on the edge
+    cols = np.arange(camera.width + int(whole)) - offset
+    out = np.zeros((camera.height, camera.width), bool)
+    for start in range(0, camera.height, chunk_rows):
+        stop = min(start + chunk_rows, camera.height)
+        c, r = np.meshgrid(cols, np.arange(start, stop + int(whole)) - offset)
+        points = np.stack([c, r, np.ones_like(c)], axis=-1) @ to_plane.T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inside = on_sample(camera, points[..., :2] / points[..., 2:], width, height, slack)
+        out[start:stop] = (inside[:-1, :-1] & inside[:-1, 1:] & inside[1:, :-1] & inside[1:, 1:]) if whole else inside
+    return out
 
 
 def on_sample(camera: Camera, xy: np.ndarray, width: float, height: float, slack: float = 0.0) -> np.ndarray:

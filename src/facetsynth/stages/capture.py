@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import manifest, plausibility, virtual_rig
+from ..rectify import sample_pixels
 from ..errors import InputError
 from ..fileio import atomic_dir, read_exposure
 from ..frames import map_frames
@@ -97,7 +98,8 @@ def inspect_capture(path: str | Path) -> tuple[dict, list[str]]:
     source = Path(path) / "manifest.json" if Path(path).is_dir() else Path(path)
     warnings = plausibility.check_geometry(capture, source) + plausibility.duplicate_files(capture)
     plausibility.check_truth_scene(capture, source)
-    on_sample = plausibility.sample_pixels(capture)
+    on_sample = sample_pixels(manifest.camera(capture), capture["sample"]["width"], capture["sample"]["height"],
+                              whole=False)
     shape = (capture["camera"]["height"], capture["camera"]["width"], 3)
     floor = SensorModel(read_sigma=capture.get("noise", {}).get("read_sigma", 0.0)).noise_floor
 

@@ -28,6 +28,7 @@ from typing import NamedTuple
 import numpy as np
 
 from .. import manifest, plausibility
+from ..rectify import sample_pixels
 from ..errors import InputError
 from ..fileio import atomic_dir, exposure_bits, file_key, read_codes, read_exr, read_rgb, write_exr, write_json
 from ..frames import map_frames
@@ -113,7 +114,8 @@ def load(inputs: Inputs, settings: Settings, response_settings: ResponseSettings
     _check_lights(capture, path)
     warnings = plausibility.check_geometry(capture, path) + plausibility.duplicate_files(capture)
     plausibility.check_truth_scene(capture, path)
-    on_sample = plausibility.sample_pixels(capture)
+    on_sample = sample_pixels(manifest.camera(capture), capture["sample"]["width"], capture["sample"]["height"],
+                              whole=False)
     shape = (capture["camera"]["height"], capture["camera"]["width"], 3)
     sensor, response, transfer, black_level = sensor_model(capture, path, shape, settings, response_settings)
     return Capture(capture, path, warnings, on_sample, shape, sensor, response, transfer, black_level)

@@ -95,7 +95,7 @@ def warp_frames(capture: dict, camera: Camera, grid: PlaneGrid, filtername: str,
     whole (:func:`facetsynth.fileio.atomic_dir`: an interrupted run resumes, skipping the frames already
     warped); returns each frame's geometry entry (its file, relative to the geometry's folder, and light)."""
     key = {"hdr": file_key(manifest_path), "grid": grid.to_dict(), "filter": filtername, "weights": "sample pixels"}
-    on_sample = sample_pixels(camera, capture["sample"]["width"], capture["sample"]["height"])
+    on_sample = sample_pixels(camera, capture["sample"]["width"], capture["sample"]["height"]).astype(np.float32)
     with atomic_dir(frames_dir, key) as staging:
 
         def rectify_frame(job: tuple[int, dict]) -> dict:

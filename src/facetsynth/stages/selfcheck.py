@@ -93,7 +93,7 @@ def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threa
     camera = manifest.camera(m)
     renderer = FrameRenderer(load_model(inputs.svbrdf), camera)
     # pixels across the sample's edge mix it with the background: no measurement of it (rectify leaves them out)
-    sample = renderer.sample_mask & (sample_pixels(camera, m["sample"]["width"], m["sample"]["height"]) > 0)
+    sample = renderer.sample_mask & sample_pixels(camera, m["sample"]["width"], m["sample"]["height"])
     held = heldout_lights(len(m["frames"]), settings.heldout_every)
     subsets = {"relit": relit_frames(held, settings.relit_every), "heldout": np.flatnonzero(held)}
     images_out = Path(outputs.images)
