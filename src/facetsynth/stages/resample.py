@@ -173,13 +173,14 @@ def _resample_points(capture: RectifiedCapture, grid: DirectionGrid, spec, ok, p
     def resample_tile(local: slice) -> tuple[np.ndarray, np.ndarray]:
         tile = slice(points.start + local.start, points.start + local.stop)
         s, valid = np.asarray(spec[tile], float), ok[tile]
-        xyz, frames = capture.points[tile], capture.frames(tile)
-        value, defined = lights.interpolate(s.mean(axis=-1), valid, xyz, world_grid(grid, frames))
+        xyz, directions = capture.points[tile], world_grid(grid, capture.frames(tile))
+        value, defined = lights.interpolate(s.mean(axis=-1), valid, xyz, directions)
         table = push_pull((value * defined).reshape((-1,) + grid.shape), defined.reshape((-1,) + grid.shape).astype(float))
         total = np.where(valid[..., None], s, 0.0).sum(axis=1)
         mean = total.mean(axis=1, keepdims=True)
         colour[local] = np.divide(total, mean, out=np.ones_like(total), where=mean > 0)
-        return read_around(footprint.on_grid(xyz, grid, frames) > 0), table
+        covered = footprint.coverage(xyz, directions).reshape((-1,) + grid.shape) > 0    # LightFootprint.on_grid
+        return read_around(covered), table
 
     with support_writer(slice_out, shape) as write_slice:
         for kept, table in imap(resample_tile, list(tiles(n)), threads, "resample", unit="tile"):
