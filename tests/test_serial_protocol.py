@@ -324,6 +324,8 @@ def test_concurrent_state_reads(rig: RigController, controller: VirtualControlle
     def camera() -> None:
         while not stop.is_set():
             seen.append(controller.state())
+            time.sleep(0.0005)      # a camera polls; a loop without a pause starved the port's thread of the GIL
+                                    # on a loaded machine (a 1 s timeout of the rig, session 44)
 
     reader = threading.Thread(target=camera)
     reader.start()
