@@ -256,7 +256,8 @@ def choose_per_material(model: SVBRDF, capture: RectifiedCapture, specular, vali
     taken (:func:`ladder_minimum`); it replaces the pipeline's value where it lowers that error by
     more than ``settings.material_margin`` (elsewhere the samples do not tell the values apart, and the
     pipeline's stays). ``apply(model, representatives, points, value)`` is the model with the value set. The
-    ladder's values are tried on ``threads`` threads. Returns the model with every material's choice and a record per material."""
+    ladder's values are tried on ``threads`` threads. Returns the model with every material's choice and a
+    record per material."""
     material, owner = materials(model, settings)
     ladder = np.asarray(sorted(ladder), float)
     records = []
