@@ -53,7 +53,7 @@ run: $(VENV)/.installed-run
 	$(BIN)/snakemake --cores $(CORES)
 
 test: $(VENV)/.installed-test
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n $(CORES) --dist loadfile
 
 lint: $(VENV)/.installed-test
 	BIN=$(BIN) .ci/lint
