@@ -427,9 +427,12 @@ def test_a_real_sigint_stops_predict_cleanly(work):
     action, as from a terminal: a suite started in the background (`cmd &`) ignores SIGINT, its children inherit
     that, and Python then installs no KeyboardInterrupt (predict ran to its end and the test failed)."""
     out = work / "out"
-    proc = subprocess.Popen([str(EXE), "predict", str(work / "svbrdf"), str(work / "capture"), str(out),
-                             "--supersample", "16"], stderr=subprocess.PIPE, text=True,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)   # a handler: exec resets it to default
+    try:
+        proc = subprocess.Popen([str(EXE), "predict", str(work / "svbrdf"), str(work / "capture"), str(out),
+                                 "--supersample", "16"], stderr=subprocess.PIPE, text=True)
+    finally:
+        signal.signal(signal.SIGINT, previous)
     deadline = time.monotonic() + 60
     while not list(out.glob(f"{STAGING}*/frames/*.exr")) and time.monotonic() < deadline:
         time.sleep(0.05)
