@@ -399,7 +399,7 @@ def test_ndf_spread_skips_turning_frames_and_scores_a_constant_one():
     """A polar frame is one material at many rotations (skipped, said so); a constant frame is scored, and
     a point whose NDF differs from the rest shows in the spread."""
     from facetsynth.scene import Scene
-    from facetsynth.stages.params import ndf_spread
+    from facetsynth.evaluation.params import ndf_spread
     scene = Scene.from_dict({"name": "two", "size": [0.1, 0.1], "regions": [
         {"name": "turned", "where": {"rect": {"x": [-0.05, 0.0], "y": [-0.05, 0.05]}}, "kd": [0.2, 0.2, 0.2],
          "ks": [0.5, 0.5, 0.5], "eta": 1.5, "alpha": [0.1, 0.3], "frame": {"polar": [0.0, 0.0]}},

@@ -82,9 +82,10 @@ def metrics_of(path: Path) -> dict:
 def interior_truth(geometry: Path):
     """The rectified capture, the true maps at its points, and the cells away from material edges."""
     from facetsynth.stages.common import RectifiedCapture
-    from facetsynth.stages.rectify import _near_edges
+    from facetsynth.evaluation.rectify import _near_edges
+    from facetsynth.evaluation.truth import truth_of
     cap = RectifiedCapture.load(geometry)
-    truth = cap.truth()
+    truth = truth_of(cap)
     region = truth.region.reshape(cap.grid.rows, cap.grid.cols)
     border = np.ones(region.shape, bool)
     border[1:-1, 1:-1] = False                         # the warp filter mixes the background into the outer cells

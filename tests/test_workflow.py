@@ -16,7 +16,8 @@ from facetsynth import selfcheck, tables
 from facetsynth.fileio import read_rgb, write_exr
 from facetsynth.stages.common import RectifiedCapture
 from facetsynth.svbrdf import SVBRDF
-from facetsynth.stages import partial_ndf
+from facetsynth import evaluation
+from facetsynth.evaluation.truth import truth_of
 from facetsynth.tables import SupportTable
 from facetsynth.virtual_rig import VirtualRig, capture
 
@@ -76,7 +77,7 @@ def test_noise_free_demo_meets_the_reflectance_targets(demo_run):
     assert ndf["view"] == "per_point" and ndf["scored_points"] > 900
     assert ndf["ndf_rel_l2_median"] <= 0.15
     res = demo_run / "results/demo"
-    variants = partial_ndf.variant_errors(res / "rectify/geometry.json", res / "resample/slice",
+    variants = evaluation.partial_ndf.variant_errors(res / "rectify/geometry.json", res / "resample/slice",
                                           res / "resample/grid.json",
                                           {"stage": (True, True), "unconstrained": (True, False),
                                            "centre_view": (False, True)})
@@ -141,7 +142,7 @@ def test_noise_free_demo_predicts_held_out_views_and_fits_stencils(demo_run):
     # median measured 0.968 / 1.022; before, 0.99 / 1.64: wedges of 1.5 x), and the markers black
     model = SVBRDF.load(demo_run / "results/demo/svbrdf")
     capture = RectifiedCapture.load(demo_run / "results/demo/rectify/geometry.json")
-    truth = capture.truth()
+    truth = truth_of(capture)
     ks = model.ks.mean(axis=1)[capture.visible & (truth.region == 0)]
     p10, p90 = np.percentile(ks, [10, 90]) / np.median(ks)
     assert p10 >= 0.94 and p90 <= 1.06

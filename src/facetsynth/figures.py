@@ -488,6 +488,7 @@ def write_ndf(svbrdf: str | Path, partial: str | Path, partial_grid: str | Path,
               out: str | Path, sample: str, settings: FigureSettings = FigureSettings()) -> None:
     """Partial (stage ``partial_ndf``), completed (the SVBRDF's eq. 18 mixture) and, for a virtual
     sample, true NDFs at a few points of the sample."""
+    from .evaluation.truth import truth_of
     from .fileio import read_json
     from .grid import DirectionGrid
     from .svbrdf import SVBRDF
@@ -504,7 +505,7 @@ def write_ndf(svbrdf: str | Path, partial: str | Path, partial_grid: str | Path,
     columns: dict[str, list] = {
         "partial (measured)": [peak_normalised(d, s) for d, s in zip(partial_d, support)],
         "completed (SVBRDF)": [peak_normalised(d) for d in model.point_ndf(index)]}
-    truth = capture.truth()
+    truth = truth_of(capture)
     if truth is not None:
         maps = truth.take(index)
         d = maps.take((slice(None), None)).ndf(model.grid.directions.reshape(1, -1, 3))

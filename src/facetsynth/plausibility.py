@@ -220,24 +220,6 @@ def _lights_against_sample(capture: dict[str, Any], path: str | Path | None) -> 
     return warnings
 
 
-def check_truth_scene(capture: dict[str, Any], path: str | Path | None) -> None:
-    """A virtual capture's ``truth/scene`` must be a scene file: InputError naming the key otherwise (the
-    scene's own error is bounded: never the contents of another file)."""
-    scene = capture.get("truth", {}).get("scene")
-    if scene is None:
-        return
-    from .fileio import read_yaml
-    from .scene import Scene
-    try:
-        document = read_yaml(scene)   # its errors give a line and column, never the text
-        if not isinstance(document, dict):
-            raise InputError(scene, f"holds {type(document).__name__ if document is not None else 'nothing'}, "
-                                    "not a scene (a YAML mapping with name, size and regions)")
-        Scene.from_dict(document, scene)
-    except InputError as exc:
-        raise InputError(path, f"invalid capture manifest at 'truth/scene': not a scene file: {exc}") from None
-
-
 def duplicate_files(capture: dict[str, Any]) -> list[str]:
     """A warning when one exposure file is listed by two frames (two lights cannot give one picture)."""
     first: dict[str, int] = {}

@@ -12,6 +12,7 @@ import numpy as np
 from .. import manifest, plausibility, virtual_rig
 from ..rectify import sample_pixels
 from ..errors import InputError
+from ..evaluation.truth import check_truth_scene
 from ..fileio import atomic_dir, read_exposure
 from ..frames import map_frames
 from ..hdr import SensorModel
@@ -97,7 +98,7 @@ def inspect_capture(path: str | Path) -> tuple[dict, list[str]]:
     capture = manifest.load(path)
     source = Path(path) / "manifest.json" if Path(path).is_dir() else Path(path)
     warnings = plausibility.check_geometry(capture, source) + plausibility.duplicate_files(capture)
-    plausibility.check_truth_scene(capture, source)
+    check_truth_scene(capture, source)
     on_sample = sample_pixels(manifest.camera(capture), capture["sample"]["width"], capture["sample"]["height"],
                               whole=False)
     shape = (capture["camera"]["height"], capture["camera"]["width"], 3)

@@ -1,4 +1,4 @@
-"""What the per-point stages share: the rectified capture's geometry, tiling, truth."""
+"""What the per-point stages share: the rectified capture's geometry, tiling, scatter parts."""
 
 from __future__ import annotations
 
@@ -16,7 +16,6 @@ from ..fileio import read_json
 from ..normals import shading_frames, to_local
 from ..plane import PlaneGrid
 from ..render import light_geometry, towards
-from ..scene import MaterialMaps, Scene
 
 TILE_POINTS = 256  # points per tile: bounds the memory of every per-point stage
 
@@ -124,12 +123,6 @@ class RectifiedCapture:
         frames = self.frames(index)
         return (wi if frames is None else to_local(frames[:, None], wi)), r2
 
-    def truth(self) -> MaterialMaps | None:
-        """The true SVBRDF parameters at every point, for virtual captures."""
-        if self.truth_scene is None:
-            return None
-        return Scene.load(self.truth_scene).parameters(self.points[:, :2])
-
 
 def part_points(n: int, part: int, parts: int, size: int = TILE_POINTS) -> slice:
     """The points of scatter part ``part`` of ``parts`` (0-based, config ``scatter.tiles``): whole tiles of
@@ -159,21 +152,6 @@ def part_records(records: list) -> tuple[np.ndarray, dict]:
                     else np.sum([loaded[k][key] for k in order]))
               for key in loaded[0] if key != "start"} if loaded else {}
     return order, joined
-
-
-def analytic_points(capture: RectifiedCapture, truth: MaterialMaps) -> np.ndarray:
-    """(P,) bool: the visible points whose truth is eq. 6 (on a region, ``MaterialMaps.analytic``): the only
-    points where a true kd, ks, eta or NDF exists to score a fit against (a measured or conductor truth's are
-    placeholders)."""
-    return capture.visible & (truth.region >= 0) & np.asarray(truth.analytic, bool).reshape(capture.visible.shape)
-
-
-def median_rel_error(fitted: np.ndarray, true: np.ndarray, on: np.ndarray) -> float | None:
-    """The median over the points ``on`` of |mean(fitted) - mean(true)| / mean(true), channel means of (P, 3)
-    maps, where the truth's mean is > 0; None where no point is left."""
-    t = np.asarray(true, float).reshape(-1, 3).mean(axis=1)
-    sel = on & (t > 0)
-    return float(np.median(np.abs(np.asarray(fitted).mean(axis=1)[sel] - t[sel]) / t[sel])) if sel.any() else None
 
 
 def flag_degenerate(metrics: dict, reason: str, log: logging.Logger) -> None:

@@ -30,11 +30,12 @@ import numpy as np
 from .. import manifest, plausibility
 from ..rectify import sample_pixels
 from ..errors import InputError
+from ..evaluation.hdr import frame_truth_errors, truth_scores
+from ..evaluation.truth import check_truth_scene
 from ..fileio import atomic_dir, exposure_bits, file_key, read_codes, read_exr, read_rgb, write_exr, write_json
 from ..frames import map_frames
 from ..hdr import SensorModel, merge_exposures
 from ..lightplane import LightTriangulation
-from ..metrics import relative_errors
 from ..response import Response, ResponseSettings, recover_response
 from ..transfer import Transfer, parse
 from .common import RuleFiles, StageSettings, flag_degenerate
@@ -84,7 +85,7 @@ def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threa
         response_settings: ResponseSettings = ResponseSettings()) -> None:
     """Load, merge, write: every frame of the capture ``inputs.capture`` merged into ``outputs.frames/NNNN.exr``,
     an HDR manifest ``outputs.manifest`` and ``outputs.metrics``; for a virtual capture, the merged frames
-    scored against the true radiance (:func:`truth_scores`).
+    scored against the true radiance (:func:`facetsynth.evaluation.hdr.truth_scores`).
 
     The output manifest describes the merged frames as a capture with one
     exposure of time 1 per frame and no clipping, so it is itself importable.
@@ -113,7 +114,7 @@ def load(inputs: Inputs, settings: Settings, response_settings: ResponseSettings
     path = Path(capture["_dir"]) / "manifest.json"
     _check_lights(capture, path)
     warnings = plausibility.check_geometry(capture, path) + plausibility.duplicate_files(capture)
-    plausibility.check_truth_scene(capture, path)
+    check_truth_scene(capture, path)
     on_sample = sample_pixels(manifest.camera(capture), capture["sample"]["width"], capture["sample"]["height"],
                               whole=False)
     shape = (capture["camera"]["height"], capture["camera"]["width"], 3)
@@ -257,30 +258,6 @@ def _response_metrics(capture: Capture) -> dict:
     return metrics
 
 
-# ---------------------------------------------------------------------------- truth
-def frame_truth_errors(frame: dict, merged: np.ndarray, saturated: np.ndarray, times: np.ndarray,
-                       noise_floor: float) -> np.ndarray | None:
-    """A virtual capture's frame: the relative errors of its merged radiance against the true one (None
-    without truth), on the pixels above the noise floor in the longest exposure and not clipped in all
-    (4096 at most, strided). Taken while the frame is merged, not read back after: the frames are streamed."""
-    if "radiance" not in frame.get("truth", {}):
-        return None
-    truth = read_rgb(frame["truth"]["radiance"])
-    above_floor = truth * times.max() > noise_floor
-    return relative_errors(merged, truth, above_floor & ~saturated[..., None], sample=4096)
-
-
-def truth_scores(merged: list[Merged]) -> dict:
-    """The merged frames' median relative error against the true radiance (:func:`frame_truth_errors`); {}
-    for a real capture."""
-    errors = [m.errors for m in merged if m.errors is not None]
-    if not errors:
-        return {}
-    scores = {"median_rel_error": float(np.median(np.concatenate(errors)))}
-    log.info("HDR median relative error against the true radiance: %.5f", scores["median_rel_error"])
-    return scores
-
-
 # ---------------------------------------------------------------------------- helpers
 def _check_lights(capture: dict, manifest_path: Path) -> None:
     """The method interpolates each point's samples over one triangulation of the lights in their plane
@@ -295,7 +272,7 @@ def _check_lights(capture: dict, manifest_path: Path) -> None:
 
 class Merged(NamedTuple):
     """One merged frame's figures: its saturated pixel count, its exposures' negative values, its relative
-    errors against the truth (None without truth, :func:`frame_truth_errors`), whether it is dark, and its
+    errors against the truth (None without truth, :func:`facetsynth.evaluation.hdr.frame_truth_errors`), whether it is dark, and its
     saturated pixels among those that see the sample (:func:`facetsynth.plausibility.check_clipping`)."""
     saturated: int
     negatives: "Negatives"

@@ -14,12 +14,11 @@ from ..fileio import atomic_path, read_json, write_json
 from ..frames import imap
 from ..grid import DirectionGrid
 from ..tables import SupportTable, join_tables, support_writer
-from .common import (TILE_POINTS, RectifiedCapture, RuleFiles, StageSettings, analytic_points, part_points,
-                     part_records, tiles)
+from ..evaluation.partial_ndf import partial_ndf_errors
+from ..evaluation.truth import median_or_none, scored_points, truth_of
+from .common import TILE_POINTS, RectifiedCapture, RuleFiles, StageSettings, part_points, part_records, tiles
 
 log = logging.getLogger(__name__)
-
-METRIC_POINTS = 1024  # points on which the accuracy against the truth is measured
 
 
 @dataclass(frozen=True)
@@ -93,8 +92,8 @@ def run_whole(geometry: str | Path, slice_path: str | Path, grid_path: str | Pat
 
     For virtual captures, accuracy is measured against
     :func:`facetsynth.partial_ndf.recoverable_ndf` over cells with W >= 0.5,
-    on the points :func:`scored_points` picks. The other shadowing method and
-    view model are compared on the same points by :func:`variant_errors`
+    on the points :func:`facetsynth.evaluation.truth.scored_points` picks. The other shadowing method and
+    view model are compared on the same points by :func:`facetsynth.evaluation.partial_ndf.variant_errors`
     (a test, not every run: it fits the points again per variant).
     """
     capture = RectifiedCapture.load(geometry)
@@ -133,7 +132,7 @@ def _fit_points(capture: RectifiedCapture, grid: DirectionGrid, slice_path, poin
     support table, tiles on ``threads`` threads; returns the points' iterations, convergence and the
     scored points' errors."""
     table, coverage = SupportTable(slice_path).rows("values"), light_coverage(capture, grid)
-    truth = capture.truth()
+    truth = truth_of(capture)
     scored = scored_points(capture, truth)
     n = points.stop - points.start
     errors = []
@@ -152,14 +151,14 @@ def _fit_points(capture: RectifiedCapture, grid: DirectionGrid, slice_path, poin
             iterations[local], converged[local] = fit.iterations, fit.converged
             pick = scored[tile]
             if pick.any():
-                errors.append(_errors(fit.ndf[pick], fit.confidence[pick], view[pick],
-                                      truth.take(np.flatnonzero(pick) + tile.start), grid))
+                errors.append(partial_ndf_errors(fit.ndf[pick], fit.confidence[pick], view[pick],
+                                                 truth.take(np.flatnonzero(pick) + tile.start), grid))
     return {"iterations": iterations, "converged": converged,
             "errors": np.concatenate(errors) if errors else np.zeros(0)}
 
 
 def _metrics(capture: RectifiedCapture, grid: DirectionGrid, fitted: dict, settings: Settings) -> dict:
-    truth = capture.truth()
+    truth = truth_of(capture)
     iterations, converged = fitted["iterations"], fitted["converged"]
     metrics = {"ground_truth": truth is not None, "points": capture.n_points, "grid": grid.to_dict(),
                "method": partial_ndf.shadowing_method(settings.shadowing),
@@ -169,57 +168,6 @@ def _metrics(capture: RectifiedCapture, grid: DirectionGrid, fitted: dict, setti
                "tolerance": settings.tolerance}
     if truth is not None:
         metrics["scored_points"] = int(scored_points(capture, truth).sum())
-        metrics["ndf_rel_l2_median"] = _median([fitted["errors"]])
+        metrics["ndf_rel_l2_median"] = median_or_none(fitted["errors"])
         log.info("partial NDF relative L2 against the truth, median: %s", metrics["ndf_rel_l2_median"])
     return metrics
-
-
-def scored_points(capture: RectifiedCapture, truth) -> np.ndarray:
-    """Every k-th visible point on the truth's sample (at most METRIC_POINTS); none without a truth."""
-    scored = np.zeros(capture.n_points, bool)
-    if truth is not None:
-        scored[:: max(1, capture.n_points // METRIC_POINTS)] = True
-        scored &= analytic_points(capture, truth)   # true NDF known: eq. 6 points
-    return scored
-
-
-VARIANTS = {"constrained": (True, "constrained"), "unconstrained": (True, "unconstrained"),
-            "clipped": (True, "clipped"), "centre_view": (False, "constrained")}
-
-
-def variant_errors(geometry: str | Path, slice_path: str | Path, grid_path: str | Path,
-                   variants: dict[str, tuple[bool, bool | str]] = VARIANTS, grazing_deg: float = 80.0,
-                   tol: float = 1e-3, max_iter: int = 30) -> dict[str, float | None]:
-    """Median relative L2 error of each variant (per_point_view, shadowing method) on the scored points of a
-    virtual capture's resampled data: how the paper's choices (sec. 5.1, Fig. 5) compare on a scene. A scene
-    without analytic truth (measured BRDFs only) has no scored point: every variant is None."""
-    capture = RectifiedCapture.load(geometry)
-    grid = DirectionGrid.from_dict(read_json(grid_path))
-    truth = capture.truth()
-    if truth is None:
-        raise ValueError(f"{geometry}: variants are compared against the truth, and this capture has none")
-    index = np.flatnonzero(scored_points(capture, truth))
-    if index.size == 0:
-        return {name: None for name in variants}
-    s = np.asarray(SupportTable(slice_path).rows("values")[index], float)
-    c = light_coverage(capture, grid)(index)
-    maps = truth.take(index)
-    result = {}
-    for name, (per_point, constrain) in variants.items():
-        view = capture.view_directions(per_point, index)
-        fit = partial_ndf.fit(s, c, view, grid, constrain, grazing_deg, tol, max_iter)
-        result[name] = _median([_errors(fit.ndf, fit.confidence, view, maps, grid)])
-    return result
-
-
-def _errors(ndf: np.ndarray, confidence: np.ndarray, view: np.ndarray, maps, grid: DirectionGrid) -> np.ndarray:
-    """Relative L2 error of partial NDFs against the recoverable truth over cells with W >= 0.5."""
-    true_ndf = maps.take((slice(None), None)).ndf(grid.directions.reshape(1, -1, 3)).reshape(ndf.shape)
-    reference = partial_ndf.recoverable_ndf(maps.ks, maps.eta, true_ndf, view, grid)
-    return partial_ndf.relative_l2(ndf, reference, confidence >= 0.5, grid)
-
-
-def _median(errors: list[np.ndarray]) -> float | None:
-    values = np.concatenate(errors) if errors else np.zeros(0)
-    values = values[np.isfinite(values)]
-    return float(np.median(values)) if values.size else None

@@ -10,15 +10,13 @@ from pathlib import Path
 import numpy as np
 
 from .. import manifest
-from ..fileio import atomic_dir, file_key, read_frame, read_rgb, write_exr, write_json
+from ..evaluation.rectify import truth_scores
+from ..fileio import atomic_dir, file_key, read_frame, write_exr, write_json
 from ..frames import map_frames
-from ..metrics import marker_centroids, relative_errors
 from ..errors import InputError
 from ..camera import Camera
 from ..plane import PlaneGrid
 from ..rectify import native_resolution, sample_pixels, visible_cells, warp_sample
-from ..render import radiance
-from ..scene import Scene
 from .common import RuleFiles, StageSettings
 
 log = logging.getLogger(__name__)
@@ -49,7 +47,7 @@ class Settings(StageSettings):
 def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threads: int = 1) -> None:
     """Load, warp, write: every HDR frame of ``inputs.manifest`` onto a ``settings.resolution``-cell-wide grid
     over the sample; for a virtual capture, the registration and the rectified radiance scored against the
-    truth (:func:`truth_scores`).
+    truth (:func:`facetsynth.evaluation.rectify.truth_scores`).
 
     ``resolution`` "auto": the grid with as many cells as camera pixels see the sample
     (:func:`facetsynth.rectify.native_resolution`), logged; ``resolution_rule`` in the metrics says which.
@@ -127,48 +125,3 @@ def write_geometry(capture: dict, camera: Camera, grid: PlaneGrid, visible: np.n
     write_json(geometry_out, geometry)
 
 
-def truth_scores(capture: dict, camera: Camera, grid: PlaneGrid, visible: np.ndarray, frames_dir: Path) -> dict:
-    """A virtual capture's rectified frames in ``frames_dir`` against its true scene (:func:`_accuracy`): the
-    registration error on the markers and the radiance error, logged; {} for a real capture."""
-    if not manifest.has_truth(capture):
-        return {}
-    scores = _accuracy(Scene.load(capture["truth"]["scene"]), grid, camera.view_point, capture, frames_dir, visible)
-    log.info("registration error %.3f px (max %.3f), radiance median rel. error %.4f",
-             scores["registration_error_px"], scores["registration_error_px_max"], scores["radiance_median_rel_error"])
-    return scores
-
-
-def _accuracy(scene: Scene, grid: PlaneGrid, view: np.ndarray, capture: dict, frames_dir: Path,
-              visible: np.ndarray) -> dict:
-    """Registration error on the scene's markers; radiance error against the truth on the grid."""
-    maps = scene.parameters(grid.cell_centres())
-    points = grid.points3d()
-    interior = visible & ~_near_edges(maps.region)
-    stride = max(1, len(capture["frames"]) // 64)
-    luminance, errors = [], []
-    for q in range(0, len(capture["frames"]), stride):
-        light = capture["frames"][q]["light"]
-        rectified = read_rgb(frames_dir / f"{q:04d}.exr")
-        luminance.append(rectified.mean(axis=-1))
-        truth = radiance(points, maps.rho, manifest.light_point(light), light["intensity"], view)
-        errors.append(relative_errors(rectified, truth, interior[..., None] & (truth > 1e-3 * truth.max())))
-    background = np.median(np.stack(luminance), axis=0)
-    expected = grid.to_pixel(scene.marker_positions[:, 0], scene.marker_positions[:, 1])
-    radius_px = scene.marker_radius / grid.cell_size[0]
-    found = marker_centroids(background, expected, radius_px)
-    distance = np.hypot(*(found - expected).T)
-    distance = distance[np.isfinite(distance)]
-    return {"registration_error_px": float(distance.mean()) if distance.size else None,
-            "registration_error_px_max": float(distance.max()) if distance.size else None,
-            "markers_found": int(distance.size),
-            "radiance_median_rel_error": float(np.median(np.concatenate(errors)))}
-
-
-def _near_edges(region: np.ndarray) -> np.ndarray:
-    """Cells within one cell of a material edge or marker, where resampling blurs the truth."""
-    edge = np.zeros(region.shape, dtype=bool)
-    edge[1:, :] |= region[1:, :] != region[:-1, :]
-    edge[:-1, :] |= region[1:, :] != region[:-1, :]
-    edge[:, 1:] |= region[:, 1:] != region[:, :-1]
-    edge[:, :-1] |= region[:, 1:] != region[:, :-1]
-    return edge

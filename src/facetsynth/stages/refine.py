@@ -8,7 +8,7 @@ eta and the NDF's stretch per material, each point's NDF turn, kd and ks per
 point (:func:`fit`). Output: the fitted SVBRDF folder a user takes away, and
 ``refine/metrics.json``: the model's relative L2 against those samples before
 and after, each choice, and for a virtual capture kd and ks against the truth
-(:func:`truth_scores`, apart from the fit, on the written model).
+(:func:`facetsynth.evaluation.refine.truth_scores`, apart from the fit, on the written model).
 """
 
 from __future__ import annotations
@@ -35,9 +35,9 @@ from ..refine import (NormalSums, best_turns, owned_kd, radiance_weights, solve,
                       table_normal_equations)
 
 from ..svbrdf import SVBRDF
-from .common import (TILE_POINTS, RectifiedCapture, RuleFiles, StageSettings, analytic_points, median_rel_error,
+from ..evaluation.refine import truth_scores
+from .common import (TILE_POINTS, RectifiedCapture, RuleFiles, StageSettings,
                      strided, tiles)
-from .params import spread_scores
 
 log = logging.getLogger(__name__)
 
@@ -527,24 +527,6 @@ def samples_rel_l2(model: SVBRDF, capture: RectifiedCapture, specular, valid,
     total = float(sums.uyy.sum())
     err = float(sums.sse(model.kd[index] / np.pi, model.ks[index]).sum())
     return finite_or_none(np.sqrt(err / total)) if total > 0 else None
-
-
-def truth_scores(model: SVBRDF, capture: RectifiedCapture) -> dict:
-    """kd, ks and ks F0 (ks F(eta) at normal incidence: ks and eta trade against each other, their product is
-    what a view measures best) of the written model against a virtual capture's truth (median relative
-    error over the visible points whose truth is eq. 6: ``MaterialMaps.analytic``, truth > 0) and its NDF spread per
-    homogeneous region (:func:`facetsynth.stages.params.spread_scores`); {} for a real capture."""
-    truth = capture.truth()
-    if truth is None:
-        return {}
-    on = analytic_points(capture, truth)
-    f0 = np.ones(1)      # ks F(eta) at normal incidence: the specular reflectance a renderer's F0 takes (eq. 3)
-    f0_fitted = model.ks * fresnel(f0, model.eta)[:, None]
-    f0_true = np.asarray(truth.ks, float).reshape(-1, 3) * fresnel(f0, np.asarray(truth.eta, float).ravel())[:, None]
-    out = {f"{name}_median_rel_error": median_rel_error(fitted, true, on)
-           for name, fitted, true in (("kd", model.kd, truth.kd), ("ks", model.ks, truth.ks),
-                                      ("ks_f0", f0_fitted, f0_true))}
-    return {**out, **spread_scores(model, capture, truth)}
 
 
 def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threads: int = 1) -> None:

@@ -27,6 +27,7 @@ from typing import NamedTuple
 import numpy as np
 
 from .. import light_factors
+from ..evaluation.separate import truth_scores
 from ..fileio import HALF, as_half, atomic_path, read_frame, read_json, write_exr, write_json, write_npy
 from ..errors import InputError
 from ..frames import imap, map_frames
@@ -110,7 +111,7 @@ class Separated(NamedTuple):
 def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threads: int = 1) -> None:
     """Load, separate, write: per point and light of ``inputs.geometry``, rho by eq. 8, kd = pi rho_d by eq. 9
     (:func:`~facetsynth.separation.diffuse_level`), rho~_s = rho - rho_d; for a virtual capture, kd scored
-    against the truth (:func:`truth_scores`).
+    against the truth (:func:`facetsynth.evaluation.separate.truth_scores`).
 
     Writes ``kd`` (EXR on the rectified grid), the specular residual (P, F, 3) in half floats
     (:func:`~facetsynth.fileio.as_half`) and the sample validity (P, F) as memory-mappable .npy
@@ -321,22 +322,6 @@ def fit_metrics(separated: Separated, capture: RectifiedCapture, g: dict, settin
                         f"{100 * MIN_SIGNAL_FRACTION:.0f} %); the sample is matte under these lights, or the lights "
                         "miss its highlights: only kd is supported by the capture, the specular fit is noise", log)
     return metrics
-
-
-# ---------------------------------------------------------------------------- truth
-def truth_scores(kd: np.ndarray, capture: RectifiedCapture) -> dict:
-    """kd's median relative error against a virtual capture's truth, over the visible points whose true BRDF is
-    eq. 6 (measured, coated, ... have no true kd) and channels with a true kd > 0 (None: no such point); {} for
-    a real capture."""
-    truth = capture.truth()
-    if truth is None:
-        return {}
-    select = (capture.visible & truth.analytic)[:, None] & (truth.kd > 0)
-    scores = {"kd_median_rel_error": (float(np.median(np.abs(kd - truth.kd)[select] / truth.kd[select]))
-                                      if select.any() else None)}
-    if select.any():
-        log.info("kd median relative error %.4f", scores["kd_median_rel_error"])
-    return scores
 
 
 # ---------------------------------------------------------------------------- helpers

@@ -31,6 +31,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ..errors import InputError
+from ..evaluation.truth import truth_of
 from ..fileio import atomic_dir, write_json
 from ..scene import MaterialMaps
 from ..svbrdf import SVBRDF
@@ -129,7 +130,7 @@ def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threa
     reps = np.asarray(model.representatives, np.intp)
     labels = np.load(inputs.labels)
     members = np.bincount(labels[labels >= 0], minlength=len(reps))
-    truth = RectifiedCapture.load(inputs.geometry).truth()
+    truth = truth_of(RectifiedCapture.load(inputs.geometry))
     truth_axes = None if truth is None else true_axes_deg(truth.alpha_u[reps], truth.alpha_v[reps],
                                                           truth.phi_frame[reps])
     clusters, shaders = fit_clusters(model, reps, members, truth_axes, None if truth is None else truth.take(reps))

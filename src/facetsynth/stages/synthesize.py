@@ -9,7 +9,7 @@ sec. 5.3 (``search: ann``) or the exact search (``search: exact``); with
 per-point complete NDF is never stored: it is sum_k weights[x, k]
 ndf[neighbours[x, k]] (eq. 18, from the ``cluster`` stage). For a virtual
 capture the completed NDFs are scored against the true ones
-(:func:`truth_scores`, apart from the fit).
+(:func:`facetsynth.evaluation.synthesize.truth_scores`, apart from the fit).
 """
 
 from __future__ import annotations
@@ -28,11 +28,10 @@ from ..errors import InputError
 from ..fileio import read_exr, read_json, write_json, write_npy
 from ..grid import DirectionGrid
 from ..tables import SupportTable
-from .common import RectifiedCapture, RuleFiles, StageSettings, analytic_points, flag_degenerate, tiles
+from ..evaluation.synthesize import truth_scores
+from .common import RectifiedCapture, RuleFiles, StageSettings, flag_degenerate, tiles
 
 log = logging.getLogger(__name__)
-
-METRIC_POINTS = 1024   # points scored against the true NDF (every k-th visible point)
 
 
 @dataclass(frozen=True)
@@ -158,7 +157,7 @@ class Run:
 
 def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threads: int = 1) -> None:
     """Load, fit, write: the completed NDFs and synthesize/metrics.json; for a virtual capture, the scores
-    against the true NDFs (:func:`truth_scores`). ``threads``: BLAS's (eq. 15's scores), which the runner
+    against the true NDFs (:func:`facetsynth.evaluation.synthesize.truth_scores`). ``threads``: BLAS's (eq. 15's scores), which the runner
     limits."""
     if settings.search not in ("ann", "exact"):
         raise ValueError(f"synthesize.search must be 'ann' or 'exact', not {settings.search!r}")
@@ -167,7 +166,9 @@ def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threa
     data = load(inputs, capture, DirectionGrid.from_dict(grid_dict), settings.max_exemplars)
     runs, metrics = fit(data, settings)
     write(outputs, runs[settings.search].completions, grid_dict)
-    metrics.update(by_mode(truth_scores(capture, data.grid, runs, inputs), settings.search))
+    tables = {mode: np.stack([c.ndf for c in done.completions]) for mode, done in runs.items()}
+    metrics.update(by_mode(truth_scores(capture, data.grid, tables, inputs.neighbours, inputs.weights,
+                                        inputs.rotation), settings.search))
     metrics["ground_truth"] = capture.truth_scene is not None
     log.info("synthesize metrics: %s", {k: v for k, v in metrics.items() if not isinstance(v, list)})
     write_json(outputs.metrics, metrics)
@@ -419,51 +420,4 @@ def write(outputs: Outputs, completions: list, grid_dict: dict) -> None:
     write_json(outputs.grid, grid_dict)
 
 
-# ---------------------------------------------------------------------------- against the truth
-def truth_scores(capture: RectifiedCapture, grid: DirectionGrid, runs: dict[str, Run], inputs: Inputs) -> dict:
-    """Each mode's completed NDFs against a virtual capture's true ones (:func:`ndf_errors` on
-    :func:`scored_points`): median and 90th percentile relative L2, points scored; {} for a real capture."""
-    truth = capture.truth()
-    if truth is None:
-        return {}
-    scored = scored_points(capture, truth)
-    nbr, wts = np.load(inputs.neighbours, mmap_mode="r"), np.load(inputs.weights, mmap_mode="r")
-    rotation = None if inputs.rotation is None else np.load(inputs.rotation).astype(float)
-    out = {}
-    for mode, done in runs.items():
-        errs = ndf_errors(np.stack([c.ndf for c in done.completions]), nbr, wts, scored, truth, grid, rotation)
-        out[mode] = {"ndf_rel_l2_median": float(np.median(errs)) if errs.size else None,
-                     "ndf_rel_l2_p90": float(np.quantile(errs, 0.9)) if errs.size else None,
-                     "scored_points": int(errs.size)}
-    return out
 
-
-def scored_points(capture: RectifiedCapture, truth) -> np.ndarray:
-    """(P,) bool: every k-th visible point (about METRIC_POINTS) whose truth is eq. 6 (the true NDF is what
-    is recovered only there)."""
-    scored = np.zeros(capture.n_points, bool)
-    visible = np.flatnonzero(capture.visible)
-    scored[visible[:: max(1, visible.size // METRIC_POINTS)]] = True
-    return scored & analytic_points(capture, truth)
-
-
-def ndf_errors(table, nbr, wts, scored, truth, grid, rotation=None) -> np.ndarray:
-    """Relative L2 (solid-angle weighted, all cells) of sum_k w_k ndf[nbr_k] (eq. 18; turned by the point's
-    ``rotation``, where the cluster stage gave one) against the true NDF, both normalised to integral
-    (n.h) D = 1 on the grid."""
-    h = grid.directions
-    cos = h[..., 2]
-    errs = []
-    idx = np.flatnonzero(scored)
-    for t in tiles(idx.size):
-        p = idx[t]
-        est = np.einsum("nk,nktp->ntp", np.asarray(wts[p], float), table[np.asarray(nbr[p])])
-        if rotation is not None:
-            est = np.stack([grid.rotate(e, phi) for e, phi in zip(est, rotation[p])])
-        ref = truth.take((p, None)).ndf(h.reshape(1, -1, 3)).reshape(est.shape)
-        est = est / np.where(np.abs(grid.integrate(est * cos)) > 0, grid.integrate(est * cos), 1.0)[:, None, None]
-        ref = ref / grid.integrate(ref * cos)[:, None, None]
-        num, den = grid.integrate((est - ref) ** 2), grid.integrate(ref**2)
-        errs.append(np.sqrt(num / den))
-    errs = np.concatenate(errs) if errs else np.zeros(0)
-    return errs[np.isfinite(errs)]

@@ -1,0 +1,65 @@
+"""The rectify stage's frames against a virtual capture's true scene: registration and radiance."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from .. import manifest
+from ..camera import Camera
+from ..fileio import read_rgb
+from ..metrics import marker_centroids, relative_errors
+from ..plane import PlaneGrid
+from ..render import radiance
+from ..scene import Scene
+
+log = logging.getLogger(__name__)
+
+
+def truth_scores(capture: dict, camera: Camera, grid: PlaneGrid, visible: np.ndarray, frames_dir: Path) -> dict:
+    """A virtual capture's rectified frames in ``frames_dir`` against its true scene (:func:`_accuracy`): the
+    registration error on the markers and the radiance error, logged; {} for a real capture."""
+    if not manifest.has_truth(capture):
+        return {}
+    scores = _accuracy(Scene.load(capture["truth"]["scene"]), grid, camera.view_point, capture, frames_dir, visible)
+    log.info("registration error %.3f px (max %.3f), radiance median rel. error %.4f",
+             scores["registration_error_px"], scores["registration_error_px_max"], scores["radiance_median_rel_error"])
+    return scores
+
+
+def _accuracy(scene: Scene, grid: PlaneGrid, view: np.ndarray, capture: dict, frames_dir: Path,
+              visible: np.ndarray) -> dict:
+    """Registration error on the scene's markers; radiance error against the truth on the grid."""
+    maps = scene.parameters(grid.cell_centres())
+    points = grid.points3d()
+    interior = visible & ~_near_edges(maps.region)
+    stride = max(1, len(capture["frames"]) // 64)
+    luminance, errors = [], []
+    for q in range(0, len(capture["frames"]), stride):
+        light = capture["frames"][q]["light"]
+        rectified = read_rgb(frames_dir / f"{q:04d}.exr")
+        luminance.append(rectified.mean(axis=-1))
+        truth = radiance(points, maps.rho, manifest.light_point(light), light["intensity"], view)
+        errors.append(relative_errors(rectified, truth, interior[..., None] & (truth > 1e-3 * truth.max())))
+    background = np.median(np.stack(luminance), axis=0)
+    expected = grid.to_pixel(scene.marker_positions[:, 0], scene.marker_positions[:, 1])
+    radius_px = scene.marker_radius / grid.cell_size[0]
+    found = marker_centroids(background, expected, radius_px)
+    distance = np.hypot(*(found - expected).T)
+    distance = distance[np.isfinite(distance)]
+    return {"registration_error_px": float(distance.mean()) if distance.size else None,
+            "registration_error_px_max": float(distance.max()) if distance.size else None,
+            "markers_found": int(distance.size),
+            "radiance_median_rel_error": float(np.median(np.concatenate(errors)))}
+
+
+def _near_edges(region: np.ndarray) -> np.ndarray:
+    """Cells within one cell of a material edge or marker, where resampling blurs the truth."""
+    edge = np.zeros(region.shape, dtype=bool)
+    edge[1:, :] |= region[1:, :] != region[:-1, :]
+    edge[:-1, :] |= region[1:, :] != region[:-1, :]
+    edge[:, 1:] |= region[:, 1:] != region[:, :-1]
+    edge[:, :-1] |= region[:, 1:] != region[:, :-1]
+    return edge
