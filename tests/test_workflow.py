@@ -16,7 +16,7 @@ from facetsynth import selfcheck, tables
 from facetsynth.fileio import read_rgb, write_exr
 from facetsynth.stages.common import RectifiedCapture
 from facetsynth.svbrdf import SVBRDF
-from facetsynth import evaluation
+from facetsynth.evaluation.partial_ndf import variant_errors
 from facetsynth.evaluation.truth import truth_of
 from facetsynth.tables import SupportTable
 from facetsynth.virtual_rig import VirtualRig, capture
@@ -77,10 +77,10 @@ def test_noise_free_demo_meets_the_reflectance_targets(demo_run):
     assert ndf["view"] == "per_point" and ndf["scored_points"] > 900
     assert ndf["ndf_rel_l2_median"] <= 0.15
     res = demo_run / "results/demo"
-    variants = evaluation.partial_ndf.variant_errors(res / "rectify/geometry.json", res / "resample/slice",
-                                          res / "resample/grid.json",
-                                          {"stage": (True, True), "unconstrained": (True, False),
-                                           "centre_view": (False, True)})
+    variants = variant_errors(res / "rectify/geometry.json", res / "resample/slice",
+                              res / "resample/grid.json",
+                              {"stage": (True, True), "unconstrained": (True, False),
+                               "centre_view": (False, True)})
     assert variants["stage"] == pytest.approx(ndf["ndf_rel_l2_median"], rel=1e-6)   # the same points and fit
     assert variants["stage"] < variants["unconstrained"]
     assert variants["stage"] < variants["centre_view"]

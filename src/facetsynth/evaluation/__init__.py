@@ -16,9 +16,6 @@ Modules, one per stage scored:
 * :mod:`.synthesize`: the completed NDFs at the points; :mod:`.params`: eta, ks and the NDF spread per
   homogeneous region; :mod:`.refine`: kd, ks, ks F0 and the spread of the delivered model.
 
-The held-out views and lights (``validate``, ``selfcheck``) are stages of their own.
+The held-out views and lights (``validate``, ``selfcheck``) are stages of their own. Importing the package
+imports none of its modules (the truth's among them): import the one you need.
 """
-
-from . import hdr, params, partial_ndf, rectify, refine, separate, synthesize, truth
-
-__all__ = ["hdr", "params", "partial_ndf", "rectify", "refine", "separate", "synthesize", "truth"]
