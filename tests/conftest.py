@@ -23,11 +23,11 @@ def tiny_truth_model(root: Path, repo: Path, cells: int, rings: int):
     """test_predict's SCENE captured noise-free by the test rig (30 frames) into ``root``/capture, and the SVBRDF
     of its truth on a ``cells`` x ``cells`` plane grid and a ``rings`` x 4 ``rings`` direction grid in
     ``root``/svbrdf; returns the model."""
-    from facetsynth.grid import DirectionGrid
-    from facetsynth.plane import PlaneGrid
-    from facetsynth.scene import Scene
-    from facetsynth.svbrdf import tabulate_truth
-    from facetsynth.virtual_rig import VirtualRig, capture
+    from facetsynth.geometry.grid import DirectionGrid
+    from facetsynth.geometry.plane import PlaneGrid
+    from facetsynth.truth.scene import Scene
+    from facetsynth.models.svbrdf import tabulate_truth
+    from facetsynth.truth.virtual_rig import VirtualRig, capture
     from test_predict import SCENE
     (root / "scene.yaml").write_text(SCENE)
     capture(root / "scene.yaml", VirtualRig.load(repo / "tests/data/rig-tiny.yaml"), root / "capture", seed=1,
@@ -122,7 +122,7 @@ def extreme_run(tmp_path_factory):
     per-point stage on a 16 x 64 direction grid. One run for the session: shared by test_stages,
     test_partial_ndf, test_resample and test_baseline."""
     from facetsynth.stages import hdr
-    from facetsynth.virtual_rig import VirtualRig, capture
+    from facetsynth.truth.virtual_rig import VirtualRig, capture
     from test_stages import run_per_point_stages
     root = tmp_path_factory.mktemp("extremes")
     (root / "scene.yaml").write_text(EXTREME_SCENE)

@@ -9,10 +9,11 @@ import json
 import numpy as np
 import pytest
 
-from facetsynth import cluster, microfacet
-from facetsynth import synthesis
-from facetsynth.grid import DirectionGrid
-from facetsynth.partial_ndf import fresnel_cosine
+from facetsynth.fit import cluster
+from facetsynth.models import microfacet
+from facetsynth.fit import synthesis
+from facetsynth.geometry.grid import DirectionGrid
+from facetsynth.fit.partial_ndf import fresnel_cosine
 from test_synthesis import rel_l2, single_view_domain
 from test_workflow import make_workdir, metrics, snakemake
 

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from facetsynth import bench
+from facetsynth.app import bench
 
 SNAKEMAKE = [sys.executable, "-m", "snakemake", "--cores", "1", "-n"]
 PROBE = """include: "Snakefile"

@@ -21,8 +21,8 @@ import pytest
 
 from facetsynth.calibration import mirror
 from facetsynth.calibration.rigfile import RigCalibration
-from facetsynth.errors import InputError
-from facetsynth.fileio import read_json, write_exr, write_json
+from facetsynth.io.errors import InputError
+from facetsynth.io.fileio import read_json, write_exr, write_json
 from facetsynth.stages.calibrate import CalibrateSettings, calibrate
 
 RIG = "virtual-demo-calibration-error"

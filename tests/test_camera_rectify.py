@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 from scipy.ndimage import binary_dilation
 
-from facetsynth.camera import Camera
-from facetsynth.plane import PlaneGrid
-from facetsynth.rectify import rectified_to_camera, sample_pixels, visible_cells, warp_sample, warp_to_plane
-from facetsynth.errors import InputError
+from facetsynth.geometry.camera import Camera
+from facetsynth.geometry.plane import PlaneGrid
+from facetsynth.capture.rectify import rectified_to_camera, sample_pixels, visible_cells, warp_sample, warp_to_plane
+from facetsynth.io.errors import InputError
 
 
 @pytest.fixture
@@ -141,7 +141,7 @@ def nadir_camera(pixels: int = 80, focal: float = 500.0, distance: float = 1.0, 
 
 
 def test_native_resolution_has_as_many_cells_as_pixels_see_the_sample(camera):
-    from facetsynth.rectify import native_resolution
+    from facetsynth.capture.rectify import native_resolution
     flat = nadir_camera()                                    # 2 mm per pixel: a 0.1 m sample is 50 pixels wide
     assert native_resolution(flat, 0.1, 0.1) == 50
     assert native_resolution(flat, 0.1, 0.05) == 50          # half the rows, the same cells across

@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from facetsynth import cli
-from facetsynth.outputs import MARKER
+from facetsynth.app import cli
+from facetsynth.io.outputs import MARKER
 from facetsynth.stencil import readers
 from facetsynth.stencil.model import Mode, StencilModel, evaluate_utia
 from facetsynth.stencil.export import model_to_json
@@ -152,7 +152,7 @@ def test_predict_never_writes_a_non_finite_pixel(heldout, tmp_path, capsys, monk
     assert rc == 1 and "nan-light.json" in line and "frames/3/light/position" in line
     assert not (tmp_path / "out").exists()
     # bypass the manifest's check: the frame guard still refuses, and no non-finite pixel reaches a file
-    monkeypatch.setattr("facetsynth.manifest.validate", lambda manifest, path=None: None)
+    monkeypatch.setattr("facetsynth.capture.manifest.validate", lambda manifest, path=None: None)
     rc, err = run(["predict", model, capture / "nan-light.json", tmp_path / "out"], capsys)
     line = error_line(err, "predict")
     assert rc == 1 and "nan-light.json: frame 3:" in line and "NaN or Inf" in line and "not written" in line

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from facetsynth.fileio import read_exr
+from facetsynth.io.fileio import read_exr
 
 from slurm_local import local_slurm, missing
 

@@ -24,7 +24,7 @@ import pytest
 
 from conftest import hdr_outputs, rectify_into
 
-from facetsynth.fileio import read_exr, write_exr
+from facetsynth.io.fileio import read_exr, write_exr
 
 # (frame, exposure, pixels made negative, channels): 10 pixels x 3 channels + 5 pixels x 1 channel.
 NEGATIVES = [(1, 2, 10, 3), (4, 0, 5, 1)]
@@ -102,7 +102,7 @@ def work(tmp_path_factory, repo):
     in ``ref``: its hdr and partial_ndf outputs are the references, its resample outputs the inputs of
     the partial_ndf runs."""
     from facetsynth.stages import hdr, partial_ndf, resample, separate
-    from facetsynth.virtual_rig import VirtualRig, capture
+    from facetsynth.truth.virtual_rig import VirtualRig, capture
     root = tmp_path_factory.mktemp("crash")
     capture(repo / "resources/scenes/demo.yaml", VirtualRig.load(repo / "tests/data/rig-tiny.yaml"),
             root / "capture", seed=2, noise=True)
@@ -148,7 +148,7 @@ def test_hdr_counts_negative_exposure_values_and_warns(work, tmp_path, caplog):
 
 def test_hdr_without_negative_values_reports_zero_and_does_not_warn(tmp_path, repo, caplog):
     from facetsynth.stages import hdr
-    from facetsynth.virtual_rig import VirtualRig, capture
+    from facetsynth.truth.virtual_rig import VirtualRig, capture
     capture(repo / "resources/scenes/demo.yaml", VirtualRig.load(repo / "tests/data/rig-tiny.yaml"),
             tmp_path / "capture", seed=2, noise=True)
     with caplog.at_level(logging.WARNING, logger="facetsynth.stages.hdr"):
@@ -184,11 +184,11 @@ def test_hdr_rerun_after_sigkill_is_bitwise_an_uninterrupted_run(work, tmp_path,
     assert_same_files(root / "hdr", work["ref"] / "hdr")
 
 
-# partial_ndf writes its support table (facetsynth.tables) tile by tile into a staging folder, renames the
+# partial_ndf writes its support table (facetsynth.io.tables) tile by tile into a staging folder, renames the
 # mask, then writes the offsets and table.json, publishes the folder, then writes the metrics.
 PNDF_KILLS = {
     # in the third tile: the staged D and W values and the mask's temporary (two tiles) written.
-    "mid-write of the table": dict(owner="facetsynth.partial_ndf", name="fit", call=3,
+    "mid-write of the table": dict(owner="facetsynth.fit.partial_ndf", name="fit", call=3,
                                    left=["partial_ndf/.ndf.partial/ndf.npy", "partial_ndf/.ndf.partial/.mask.npy.*.tmp.npy"]),
     # every file of the table staged (mask, offsets, table.json renamed into place), the folder not published.
     "before the table is published": dict(owner="os", name="replace", call=4,

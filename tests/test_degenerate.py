@@ -11,10 +11,10 @@ import pytest
 
 from conftest import hdr_outputs, rectify_into
 
-from facetsynth.errors import InputError
-from facetsynth.fileio import read_rgb, write_exr
+from facetsynth.io.errors import InputError
+from facetsynth.io.fileio import read_rgb, write_exr
 from facetsynth.stages import hdr, separate
-from facetsynth.virtual_rig import VirtualRig, capture
+from facetsynth.truth.virtual_rig import VirtualRig, capture
 
 
 @pytest.fixture(scope="module")

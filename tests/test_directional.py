@@ -8,12 +8,12 @@ import copy
 import numpy as np
 import pytest
 
-from facetsynth import manifest
-from facetsynth.camera import Camera
-from facetsynth.errors import InputError
-from facetsynth.lightplane import LightTriangulation, light_plane
-from facetsynth.render import light_geometry, radiance, towards
-from facetsynth.normals import FLAT_TILT_P95_DEG, relief_normals
+from facetsynth.capture import manifest
+from facetsynth.geometry.camera import Camera
+from facetsynth.io.errors import InputError
+from facetsynth.geometry.lightplane import LightTriangulation, light_plane
+from facetsynth.models.render import light_geometry, radiance, towards
+from facetsynth.fit.normals import FLAT_TILT_P95_DEG, relief_normals
 
 
 def top_down(width=40, height=30, metres=0.04) -> Camera:
@@ -152,7 +152,7 @@ def test_relief_normals_of_a_flat_sample_are_exactly_flat():
 def test_each_points_own_directions_meet_the_light_plane_as_one_at_a_time():
     """Shading frames: every point's grid turned to the world (P, N, 3) interpolates and covers exactly as the
     same directions given point by point."""
-    from facetsynth.coverage import LightFootprint
+    from facetsynth.geometry.coverage import LightFootprint
     rng = np.random.default_rng(3)
     xy = np.stack(np.meshgrid(np.linspace(-0.08, 0.08, 9), np.linspace(-0.08, 0.08, 9)), -1).reshape(-1, 2)
     lights = np.c_[xy, np.full(len(xy), 0.2)]                         # point lights in a plane
@@ -175,7 +175,7 @@ def test_each_points_own_directions_meet_the_light_plane_as_one_at_a_time():
 def test_held_out_lights_take_their_neighbours_factors():
     """A light the fit never saw gets the Gaussian-weighted factor of the lights around it on the sphere; the
     others keep theirs."""
-    from facetsynth.light_factors import fill_from_neighbours
+    from facetsynth.fit.light_factors import fill_from_neighbours
     rings = [(15.0, 24), (45.0, 12), (75.0, 6)]             # a dome's rings: denser near the horizon
     el = np.radians(np.concatenate([np.full(n, e) for e, n in rings]))
     az = np.concatenate([np.arange(n) * 2 * np.pi / n for _, n in rings])
@@ -196,7 +196,7 @@ def test_held_out_lights_get_the_factor_of_the_domes_trend_not_the_mean_of_their
     trend's factor to 2.5 % (local-linear in log f; measured 1 %), as do the held-out lights of the sparse upper
     rings (measured 0.1-2.1 %); the lights' Gaussian-weighted mean is 3 % high on the lowest ring and 16-37 %
     off on the 33 and 53 deg rings."""
-    from facetsynth.light_factors import fill_from_neighbours
+    from facetsynth.fit.light_factors import fill_from_neighbours
     rng = np.random.default_rng(2)
     rings = [(11.0, 16), (15.0, 16), (33.0, 8), (53.0, 8), (73.0, 6)]
     el = np.radians(np.concatenate([e + rng.uniform(-1.5, 1.5, n) for e, n in rings]))
@@ -214,8 +214,8 @@ def test_held_out_lights_get_the_factor_of_the_domes_trend_not_the_mean_of_their
 def test_kmeans_beyond_its_fitting_points_assigns_every_point_to_its_nearest_centre(monkeypatch):
     """More points than KMEANS_POINTS: centres from the strided subset, every point labelled; three well
     separated groups come out as three clusters whatever the subset."""
-    from facetsynth import cluster
-    from facetsynth.grid import DirectionGrid
+    from facetsynth.fit import cluster
+    from facetsynth.geometry.grid import DirectionGrid
     monkeypatch.setattr(cluster, "KMEANS_POINTS", 64)
     rng = np.random.default_rng(4)
     truth = np.repeat(np.arange(3), 100)
@@ -232,8 +232,8 @@ def test_a_metals_normal_comes_from_its_highlight():
     """Without diffuse to fit, the normal is the mean half vector of the brightest samples: a glint 8 deg wide
     under 48 random dome lights gives the tilted normal within 3 deg, and a clear contrast; a matte point
     (no glint) has contrast near 1."""
-    from facetsynth.microfacet import half_vector
-    from facetsynth.normals import HIGHLIGHT_CONTRAST, highlight_normals
+    from facetsynth.models.microfacet import half_vector
+    from facetsynth.fit.normals import HIGHLIGHT_CONTRAST, highlight_normals
     rng = np.random.default_rng(5)
     el, az = np.radians(rng.uniform(10, 80, 48)), rng.uniform(0, 2 * np.pi, 48)
     wi = np.c_[np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)]

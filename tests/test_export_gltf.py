@@ -7,14 +7,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from facetsynth.errors import InputError
+from facetsynth.io.errors import InputError
 from facetsynth.export.gltf import (GLTF_NAME, IMAGES, decode_textures, encode_textures, export_gltf, fit_material,
                                     orient_directions, read_gltf, srgb_decode, srgb_encode, validate_gltf)
-from facetsynth.ggx import GltfMaterial, anisotropic_alphas, fit_ggx_ndf, ggx_tables, roughness_strength
-from facetsynth.grid import DirectionGrid
-from facetsynth.params import normalise, projected_area
-from facetsynth.plane import PlaneGrid
-from facetsynth.svbrdf import SVBRDF
+from facetsynth.models.ggx import GltfMaterial, anisotropic_alphas, fit_ggx_ndf, ggx_tables, roughness_strength
+from facetsynth.geometry.grid import DirectionGrid
+from facetsynth.fit.params import normalise, projected_area
+from facetsynth.geometry.plane import PlaneGrid
+from facetsynth.models.svbrdf import SVBRDF
 
 GRID = DirectionGrid(32, 128)   # the demo's direction grid (balanced preset)
 

@@ -28,14 +28,14 @@ import pytest
 
 pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install mitsuba, or the test extra)")
 
-from facetsynth import manifest  # noqa: E402
-from facetsynth import mitsuba_capture  # noqa: E402
-from facetsynth.errors import InputError  # noqa: E402
+from facetsynth.capture import manifest  # noqa: E402
+from facetsynth.truth import mitsuba_capture  # noqa: E402
+from facetsynth.io.errors import InputError  # noqa: E402
 from facetsynth.export.mitsuba import export_mitsuba  # noqa: E402
-from facetsynth.fileio import read_rgb  # noqa: E402
-from facetsynth.grid import DirectionGrid  # noqa: E402
-from facetsynth.predict import FrameRenderer  # noqa: E402
-from facetsynth.svbrdf import SVBRDF, tabulate_truth  # noqa: E402
+from facetsynth.io.fileio import read_rgb  # noqa: E402
+from facetsynth.geometry.grid import DirectionGrid  # noqa: E402
+from facetsynth.app.predict import FrameRenderer  # noqa: E402
+from facetsynth.models.svbrdf import SVBRDF, tabulate_truth  # noqa: E402
 from test_svbrdf import PLANE, P, random_maps, upper  # noqa: E402  (the same small SVBRDF as the loader's tests)
 
 GRID = DirectionGrid(16, 64)

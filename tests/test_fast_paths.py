@@ -8,11 +8,12 @@ import numpy as np
 import pytest
 from scipy.ndimage import map_coordinates
 
-from facetsynth import cluster, tables
-from facetsynth.coverage import LightFootprint
-from facetsynth.grid import DirectionGrid
-from facetsynth.lightplane import LightTriangulation
-from facetsynth.partial_ndf import SHADOWING_GRID, _shadowing_area, _shadowing_kernel, projected_area_table
+from facetsynth.fit import cluster
+from facetsynth.io import tables
+from facetsynth.geometry.coverage import LightFootprint
+from facetsynth.geometry.grid import DirectionGrid
+from facetsynth.geometry.lightplane import LightTriangulation
+from facetsynth.fit.partial_ndf import SHADOWING_GRID, _shadowing_area, _shadowing_kernel, projected_area_table
 
 from test_stages import one_material, rig_lights, write_rectified
 from test_sampling_invariance import paper_lights
@@ -107,7 +108,7 @@ def test_batched_constrained_least_squares_equals_lstsq_per_system():
 def test_separation_in_frame_blocks_equals_one_frame_at_a_time(tmp_path, monkeypatch):
     """separate reads the frames in blocks on threads and writes them as blocks of columns: the outputs are
     bit for bit those of one frame at a time on one thread."""
-    from facetsynth.plane import PlaneGrid
+    from facetsynth.geometry.plane import PlaneGrid
     from facetsynth.stages import separate
     geometry = write_rectified(tmp_path / "cap", one_material((0.2, 0.3, 0.4), (0.5,) * 3), PlaneGrid(0.1, 0.1, 9, 9),
                                rig_lights(5, 4))
@@ -126,7 +127,7 @@ def test_separation_in_frame_blocks_equals_one_frame_at_a_time(tmp_path, monkeyp
 
 def test_tiles_on_threads_equal_one_thread(tmp_path):
     """resample and partial_ndf with their tiles on 2 threads write the same bytes as on one, run after run."""
-    from facetsynth.plane import PlaneGrid
+    from facetsynth.geometry.plane import PlaneGrid
     from facetsynth.stages import partial_ndf, resample, separate
     geometry = write_rectified(tmp_path / "cap", one_material((0.2, 0.3, 0.4), (0.5,) * 3), PlaneGrid(0.1, 0.1, 32, 32),
                                rig_lights(9, 8))
@@ -173,7 +174,7 @@ def test_the_slice_kept_on_its_support_gives_the_partial_ndfs_of_the_whole_slice
     (coverage.read_around): every cell eq. 11's bilinear lookups read where W > 0. The partial NDFs fitted
     from it are those fitted from the whole slice, bit for bit, on a rig whose lights cover a part of the
     hemisphere."""
-    from facetsynth.plane import PlaneGrid
+    from facetsynth.geometry.plane import PlaneGrid
     from facetsynth.stages import partial_ndf, resample, separate
     geometry = write_rectified(tmp_path / "cap", one_material((0.2, 0.3, 0.4), (0.5,) * 3, alpha=(0.15, 0.3)),
                                PlaneGrid(0.1, 0.1, 16, 16), rig_lights(9, 8))

@@ -7,9 +7,8 @@ import sys
 import numpy as np
 import pytest
 
-from facetsynth.errors import InputError
-from facetsynth.fileio import (atomic_dir, read_exr, read_npy, read_rgb, write_exr, write_json,
-                               write_npy)
+from facetsynth.io.errors import InputError
+from facetsynth.io.fileio import atomic_dir, read_exr, read_npy, read_rgb, write_exr, write_json, write_npy
 
 
 def test_exr_round_trip_keeps_channels_and_header(tmp_path):
@@ -157,7 +156,7 @@ def test_npy_writer_writes_np_saves_bytes_and_npy_rows_reads_them(tmp_path):
     """The per-point stages stream their (P, T, F) outputs in row blocks and read their inputs by rows
     (issue 14: peak RSS without the memory maps' pages): the bytes are np.save's, the rows read are the
     array's, and blocks that do not fill the shape are an error."""
-    from facetsynth.fileio import NpyRows, npy_writer
+    from facetsynth.io.fileio import NpyRows, npy_writer
     a = np.random.default_rng(0).random((10, 4, 6)).astype(np.float32)
     np.save(tmp_path / "saved.npy", a)
     with npy_writer(tmp_path / "streamed.npy", np.float32, a.shape) as write:
@@ -180,7 +179,7 @@ def test_half_float_tensors_saturate_instead_of_overflowing():
     """The per-point tensors between stages are half floats (issue 14's disk budget): rounding within
     2^-11 of the value, values beyond the half range saturated at +-65504 (never Inf), NaN kept for the
     reader's checks to see."""
-    from facetsynth.fileio import as_half
+    from facetsynth.io.fileio import as_half
     values = np.array([0.0, 1e-3, 0.1234567, 3.14159, 1234.567, 65504.0, 7e4, -1e9, 1e300])
     half = as_half(values)
     assert half.dtype == np.float16 and np.isfinite(half).all()

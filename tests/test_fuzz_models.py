@@ -1,8 +1,8 @@
 """Issue 32: property tests of the model loader and of ``render`` / ``predict`` argument ranges.
 
 * A tiny valid fitted model (4 x 4 points, a 4 x 16 direction grid) with random corruptions of its maps,
-  tables and model.json: :func:`facetsynth.predict.load_model` and ``render`` either load it and write a
-  finite picture, or raise :class:`facetsynth.errors.InputError`; never another exception.
+  tables and model.json: :func:`facetsynth.app.predict.load_model` and ``render`` either load it and write a
+  finite picture, or raise :class:`facetsynth.io.errors.InputError`; never another exception.
 * ``facetsynth render`` with random view angles, light, intensity, exposure and size (huge, NaN, negative
   included), and ``facetsynth predict`` with random supersampling and camera sizes: exit 0 with a finite
   picture or frames, or a one-line error (exit 1, or 2 for an argument), never a traceback.
@@ -24,10 +24,10 @@ import pytest
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
-from facetsynth.errors import InputError
-from facetsynth.fileio import read_exr, read_rgb, write_exr
-from facetsynth.predict import load_model
-from facetsynth.preview import PreviewSettings, render_preview
+from facetsynth.io.errors import InputError
+from facetsynth.io.fileio import read_exr, read_rgb, write_exr
+from facetsynth.app.predict import load_model
+from facetsynth.app.preview import PreviewSettings, render_preview
 
 from test_cli_outputs import run
 from test_fuzz_readers import no_hang

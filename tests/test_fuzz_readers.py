@@ -1,8 +1,8 @@
 """Issue 15, part 8: fuzzing the readers of user files.
 
-Mutated capture manifests go to :func:`facetsynth.manifest.load`; arbitrary and mutated bytes go to the
-EXR reader (:func:`facetsynth.fileio.read_frame`) and to the measured-BRDF readers
-(:mod:`facetsynth.stencil.readers`). Each either reads or raises :class:`facetsynth.errors.InputError`,
+Mutated capture manifests go to :func:`facetsynth.capture.manifest.load`; arbitrary and mutated bytes go to the
+EXR reader (:func:`facetsynth.io.fileio.read_frame`) and to the measured-BRDF readers
+(:mod:`facetsynth.stencil.readers`). Each either reads or raises :class:`facetsynth.io.errors.InputError`,
 never another exception, and never hangs: every example runs under a wall-clock alarm
 (:data:`HANG_SECONDS`) as well as hypothesis' deadline. Examples are few (``max_examples``) so that the
 file runs in about 20 s; hypothesis keeps the failures it finds in its database and replays them first.
@@ -21,9 +21,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from facetsynth import manifest
-from facetsynth.errors import InputError
-from facetsynth.fileio import read_frame, write_exr
+from facetsynth.capture import manifest
+from facetsynth.io.errors import InputError
+from facetsynth.io.fileio import read_frame, write_exr
 from facetsynth.stencil import grid, readers
 
 from conftest import RGL_FILES

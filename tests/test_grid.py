@@ -1,4 +1,4 @@
-"""facetsynth.grid: the polar direction grid, its bilinear lookup and the compiled forms of both (issue 30:
+"""facetsynth.geometry.grid: the polar direction grid, its bilinear lookup and the compiled forms of both (issue 30:
 one implementation per formula, each compiled kernel checked against its numpy form)."""
 
 from __future__ import annotations
@@ -7,8 +7,8 @@ import numba
 import numpy as np
 import pytest
 
-from facetsynth import microfacet
-from facetsynth.grid import DirectionGrid, bilinear_at, polar_coordinates, turn
+from facetsynth.models import microfacet
+from facetsynth.geometry.grid import DirectionGrid, bilinear_at, polar_coordinates, turn
 
 
 def random_directions(n: int, seed: int = 0, below: bool = False) -> np.ndarray:

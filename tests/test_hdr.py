@@ -7,8 +7,8 @@ import pytest
 
 from conftest import hdr_outputs
 
-from facetsynth.hdr import SensorModel, merge_exposures
-from facetsynth.render import expose
+from facetsynth.capture.hdr import SensorModel, merge_exposures
+from facetsynth.models.render import expose
 
 TIMES = np.array([0.01, 0.1, 1.0])
 
@@ -77,9 +77,9 @@ def test_noise_spike_in_a_short_exposure_of_a_dark_pixel_is_ignored():
 def test_hdr_stage_on_two_threads_writes_what_one_thread_writes(tmp_path, repo):
     """The hdr stage merges frames on a thread pool: the frames, the manifest and the accuracy record
     are those of the serial merge (the tiny rig, sensor noise on)."""
-    from facetsynth.fileio import read_frame
+    from facetsynth.io.fileio import read_frame
     from facetsynth.stages import hdr
-    from facetsynth.virtual_rig import VirtualRig, capture
+    from facetsynth.truth.virtual_rig import VirtualRig, capture
 
     capture(repo / "resources/scenes/demo.yaml", VirtualRig.load(repo / "tests/data/rig-tiny.yaml"),
             tmp_path / "capture", seed=2, noise=True)
@@ -116,7 +116,7 @@ def test_hdr_merge_treats_nan_and_inf_readings_as_unusable():
     pixel is merged from its other exposures exactly as if that reading were absent. A pixel with no
     finite reading at all gets the clipped pixel's finite lower bound and the saturated flag, so later
     stages exclude it. The merge never returns NaN or Inf."""
-    from facetsynth.hdr import SensorModel, merge_exposures
+    from facetsynth.capture.hdr import SensorModel, merge_exposures
     times = np.array([0.01, 0.1, 1.0])
     sensor = SensorModel(saturation=1.0, read_sigma=1e-3, shot_gain=1e-4)
     values = np.array([0.004, 0.04, 0.4])[:, None, None, None] * np.ones((3, 1, 4, 3))

@@ -21,9 +21,9 @@ import pytest
 
 from conftest import REPO, hdr_outputs
 
-from facetsynth import cli
-from facetsynth.errors import InputError
-from facetsynth.fileio import read_exr, read_frame, read_json, read_yaml, write_exr
+from facetsynth.app import cli
+from facetsynth.io.errors import InputError
+from facetsynth.io.fileio import read_exr, read_frame, read_json, read_yaml, write_exr
 from facetsynth.stages import hdr
 
 GOOD = {
@@ -52,7 +52,7 @@ def toy(tmp_path):
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     """The card on the tiny rig (tests/data/rig-tiny.yaml: 30 lights, 120 x 80, 3 exposures), noise-free."""
-    from facetsynth.virtual_rig import VirtualRig, capture
+    from facetsynth.truth.virtual_rig import VirtualRig, capture
     folder = tmp_path_factory.mktemp("tiny") / "capture"
     capture(REPO / "resources/scenes/card.yaml", VirtualRig.load(REPO / "tests/data/rig-tiny.yaml"), folder,
             seed=2, noise=False)
@@ -240,7 +240,7 @@ def test_a_declared_size_costs_no_memory(toy):
     _declaring(toy / FILES[1], 12000, 12000)
     # the peak of this process alone: VmHWM starts anew at exec, ru_maxrss keeps the forking parent's peak (a test
     # run late in the suite measured the suite's 1.3 GB)
-    code = ("import sys; from facetsynth.fileio import read_exposure; from facetsynth.errors import "
+    code = ("import sys; from facetsynth.io.fileio import read_exposure; from facetsynth.io.errors import "
             "InputError\ntry:\n    read_exposure(sys.argv[1], (3, 4))\nexcept InputError as e:\n    print(e)\n"
             "print(next(int(line.split()[1]) for line in open('/proc/self/status') if line.startswith('VmHWM')))")
     done = subprocess.run([sys.executable, "-c", code, str(toy / FILES[1])], capture_output=True, text=True)
@@ -413,7 +413,7 @@ def test_a_rig_description_that_is_a_folder_is_one_line(tmp_path, capsys):
         assert cli.main(command) == 1
         err = capsys.readouterr().err
         assert f"{tmp_path / 'rig.yaml'}: is a folder, not a file" in err and "Traceback" not in err, err
-    from facetsynth.virtual_rig import VirtualRig
+    from facetsynth.truth.virtual_rig import VirtualRig
     with pytest.raises(InputError, match="is a folder"):
         VirtualRig.load(tmp_path / "rig.yaml")
 

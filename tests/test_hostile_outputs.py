@@ -24,12 +24,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from facetsynth.cli import main
-from facetsynth.fileio import read_exr, write_exr
-from facetsynth.outputs import LOCK, MARKER, STAGING, folder_lock
-from facetsynth.preview import PreviewSettings
+from facetsynth.app.cli import main
+from facetsynth.io.fileio import read_exr, write_exr
+from facetsynth.io.outputs import LOCK, MARKER, STAGING, folder_lock
+from facetsynth.app.preview import PreviewSettings
 from facetsynth.stencil.export import model_to_json
-from facetsynth.ward import WardSVBRDF
+from facetsynth.models.ward import WardSVBRDF
 
 from test_cli_outputs import error_line, run, snapshot, synth
 from conftest import tiny_truth_model
@@ -176,12 +176,12 @@ def test_a_picture_that_does_not_fit_on_the_disk_is_an_error_and_the_old_one_sta
 
 
 @pytest.mark.parametrize("argv, writer, call", [
-    ("predict {w}/svbrdf {w}/capture {out}", "facetsynth.predict.write_exr", 7),
-    ("predict {w}/svbrdf {w}/capture {out}", "facetsynth.manifest.save", 1),
+    ("predict {w}/svbrdf {w}/capture {out}", "facetsynth.app.predict.write_exr", 7),
+    ("predict {w}/svbrdf {w}/capture {out}", "facetsynth.capture.manifest.save", 1),
     ("export mitsuba {w}/svbrdf {out}", "facetsynth.export.mitsuba.write_json", 1),
     ("export mitsuba {w}/svbrdf {out}", "facetsynth.export.mitsuba._write_text", 2),
     ("export gltf {w}/svbrdf {out}", "facetsynth.export.gltf._write_png", 2),
-    ("stencil-edit {w}/params.json --out {out}", "facetsynth.fileio.atomic_path", 2),
+    ("stencil-edit {w}/params.json --out {out}", "facetsynth.io.fileio.atomic_path", 2),
 ])
 def test_a_full_disk_leaves_no_partial_folder_and_keeps_the_old_output(work, capsys, monkeypatch, argv, writer,
                                                                        call):
@@ -208,7 +208,7 @@ def test_a_read_only_folder_for_a_picture_is_one_line(work, capsys, monkeypatch)
     """Reproduced: `render -o READONLY/r.exr` ended in a traceback. (Tests run as root, who may write
     anywhere: the folder's permission and the write's failure are simulated.)"""
     real_access = os.access
-    monkeypatch.setattr("facetsynth.outputs.os.access",
+    monkeypatch.setattr("facetsynth.io.outputs.os.access",
                         lambda path, mode: False if Path(path) == work / "ro" else real_access(path, mode))
     (work / "ro").mkdir()
     for name in ("r.exr", "r.png"):
@@ -217,8 +217,8 @@ def test_a_read_only_folder_for_a_picture_is_one_line(work, capsys, monkeypatch)
         one_line(err, "render", f"{work / 'ro'}: folder is not writable")
     monkeypatch.undo()
     denied = PermissionError(errno.EACCES, os.strerror(errno.EACCES))
-    fail_on_call(monkeypatch, "facetsynth.preview.write_exr", 1, denied)
-    fail_on_call(monkeypatch, "facetsynth.preview._write_picture", 1, denied)
+    fail_on_call(monkeypatch, "facetsynth.app.preview.write_exr", 1, denied)
+    fail_on_call(monkeypatch, "facetsynth.app.preview._write_picture", 1, denied)
     for name in ("r.exr", "r.png"):
         rc, err = run(["render", work / "svbrdf", "--size", "32", "-o", work / "ro" / name], capsys)
         assert rc == 1
@@ -327,7 +327,7 @@ def test_the_gltf_never_holds_nan_even_past_the_loader(work, capsys, monkeypatch
     """The loader's check bypassed, a NaN eta reaches the glTF material's ior: the writer refuses it (NaN is
     not JSON) instead of writing it, and publishes nothing."""
     _edit_map(work / "svbrdf" / "eta.exr", "eta", lambda a: a.fill(np.nan))
-    monkeypatch.setattr("facetsynth.svbrdf.SVBRDF.check_values", lambda self, path: self)
+    monkeypatch.setattr("facetsynth.models.svbrdf.SVBRDF.check_values", lambda self, path: self)
     rc, err = run(["export", "gltf", work / "svbrdf", work / "out"], capsys)
     assert rc == 1
     one_line(err, "export", f"{work / 'svbrdf'}: the fitted glTF material holds NaN or Inf values")
@@ -369,7 +369,7 @@ def test_a_second_writer_into_one_folder_is_refused(work, capsys, writer):
 HOLDER = """
 import sys, time
 from pathlib import Path
-from facetsynth.outputs import folder_lock
+from facetsynth.io.outputs import folder_lock
 with folder_lock(Path(sys.argv[1]), "predict"):
     print("locked", flush=True)
     time.sleep(600)
@@ -400,10 +400,10 @@ def test_another_process_holds_the_lock_until_it_dies_then_it_is_taken_over(work
 # --- item 10: one line instead of a traceback --------------------------------------------------------
 
 @pytest.mark.parametrize("argv, writer", [
-    ("predict {w}/svbrdf {w}/capture {out}", "facetsynth.predict.write_exr"),
+    ("predict {w}/svbrdf {w}/capture {out}", "facetsynth.app.predict.write_exr"),
     ("export mitsuba {w}/svbrdf {out}", "facetsynth.export.mitsuba._write_text"),
     ("export gltf {w}/svbrdf {out}", "facetsynth.export.gltf._write_png"),
-    ("stencil-edit {w}/params.json --out {out}", "facetsynth.fileio.atomic_path"),
+    ("stencil-edit {w}/params.json --out {out}", "facetsynth.io.fileio.atomic_path"),
 ])
 def test_ctrl_c_exits_130_in_one_line_and_leaves_no_partial_folder(work, capsys, monkeypatch, argv, writer):
     args = argv.format(w=work, out=work / "out").split()
@@ -501,7 +501,7 @@ def test_predict_refuses_a_camera_too_large_for_memory_before_allocating(work, c
     m = json.loads((work / "capture" / "manifest.json").read_text())
     m["camera"].update(width=width, height=height)
     (work / "capture" / "manifest.json").write_text(json.dumps(m))
-    monkeypatch.setattr("facetsynth.camera.Camera.pixel_plane_points", lambda *a: pytest.fail("allocated"))
+    monkeypatch.setattr("facetsynth.geometry.camera.Camera.pixel_plane_points", lambda *a: pytest.fail("allocated"))
     manifest = work / "capture" / "manifest.json"
     rc, err = run(["predict", work / "svbrdf", manifest, work / "out", "--supersample", supersample], capsys)
     assert rc == 1

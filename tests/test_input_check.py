@@ -13,9 +13,10 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
-from facetsynth import cli, manifest
-from facetsynth.errors import InputError
-from facetsynth.fileio import write_exr
+from facetsynth.app import cli
+from facetsynth.capture import manifest
+from facetsynth.io.errors import InputError
+from facetsynth.io.fileio import write_exr
 from facetsynth.stages import hdr
 from facetsynth.stages.capture import check_capture
 
@@ -133,7 +134,7 @@ def test_bad_manifest_fails_check_with_file_key_and_reason(capture, capsys, case
 
 def test_the_import_stage_and_predict_refuse_a_manifest_as_check_does(capture, tmp_path, capsys):
     """One check for all: ``facetsynth check``, the import stage and ``predict`` give the same line."""
-    from facetsynth.predict import predict
+    from facetsynth.app.predict import predict
     from facetsynth.stages.capture import Inputs, Outputs, Settings, run
     path = mutated(capture, lambda d: d["frames"][0]["light"].update(position=[0, 0, math.nan]))
     line = check_error(capture, capsys)

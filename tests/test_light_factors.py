@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from facetsynth.light_factors import Factors, FactorSettings, correct, estimate, reference_region
+from facetsynth.fit.light_factors import Factors, FactorSettings, correct, estimate, reference_region
 from test_normals import dome, random_normals   # the same synthetic dome and relief as the normals' tests
 
 Z = np.array([0.0, 0.0, 1.0])

@@ -6,9 +6,9 @@ import json
 import numpy as np
 import pytest
 
-from facetsynth import manifest
-from facetsynth.errors import InputError
-from facetsynth.fileio import write_exr
+from facetsynth.capture import manifest
+from facetsynth.io.errors import InputError
+from facetsynth.io.fileio import write_exr
 
 GOOD = {
     "version": 1, "units": "m", "sample": {"width": 0.1, "height": 0.1},
@@ -74,5 +74,5 @@ def test_not_json_is_an_error_naming_the_file(tmp_path):
 
 
 def test_published_schema_is_draft_2020_12():
-    from facetsynth.validation import schema
+    from facetsynth.io.validation import schema
     assert schema("capture_manifest.schema.json")["$schema"].endswith("2020-12/schema")

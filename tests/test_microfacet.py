@@ -1,4 +1,4 @@
-"""Tests for facetsynth.microfacet (Wang et al. 2008, section 3, eqs. 2-6).
+"""Tests for facetsynth.models.microfacet (Wang et al. 2008, section 3, eqs. 2-6).
 
 Every numerical check is against an independent truth:
 
@@ -20,7 +20,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from facetsynth import microfacet
+from facetsynth.models import microfacet
 
 KINDS = ("ggx", "beckmann")
 N = np.array([0.0, 0.0, 1.0])

@@ -1,9 +1,9 @@
 """An independent renderer (issue 13 item 3): Mitsuba 3 renders a capture the project's model did not render.
 
 (a) geometry: the Mitsuba sensor made from a manifest camera images 3D points where
-    :class:`facetsynth.camera.Camera` projects them; (b) radiometry: a Lambertian plane, and an anisotropic
+    :class:`facetsynth.geometry.camera.Camera` projects them; (b) radiometry: a Lambertian plane, and an anisotropic
     GGX material inside the project's model family, rendered by Mitsuba equal the pixel model of DESIGN.md
-    sec. 4 (:func:`facetsynth.render.radiance`); (c) end to end: a Mitsuba capture of an anisotropic copper
+    sec. 4 (:func:`facetsynth.models.render.radiance`); (c) end to end: a Mitsuba capture of an anisotropic copper
     conductor (Mitsuba's own conductor Fresnel and Smith shadowing: outside eq. 6) is imported by the
     workflow, fitted, and ``facetsynth predict`` is scored against a held-out view that Mitsuba also renders.
 """
@@ -23,15 +23,17 @@ import pytest
 pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install mitsuba, or the test extra): "
                                       "the independent-renderer tests need it")
 
-from facetsynth import cli, manifest, microfacet  # noqa: E402
-from facetsynth import mitsuba_capture  # noqa: E402
-from facetsynth.camera import Camera  # noqa: E402
-from facetsynth.fileio import read_rgb  # noqa: E402
-from facetsynth.metrics import marker_centroids  # noqa: E402
-from facetsynth.render import radiance  # noqa: E402
-from facetsynth.scene import Scene  # noqa: E402
+from facetsynth.app import cli
+from facetsynth.capture import manifest
+from facetsynth.models import microfacet  # noqa: E402
+from facetsynth.truth import mitsuba_capture  # noqa: E402
+from facetsynth.geometry.camera import Camera  # noqa: E402
+from facetsynth.io.fileio import read_rgb  # noqa: E402
+from facetsynth.evaluation.metrics import marker_centroids  # noqa: E402
+from facetsynth.models.render import radiance  # noqa: E402
+from facetsynth.truth.scene import Scene  # noqa: E402
 from facetsynth.stages.capture import check_capture  # noqa: E402
-from facetsynth.virtual_rig import VirtualRig  # noqa: E402
+from facetsynth.truth.virtual_rig import VirtualRig  # noqa: E402
 
 RIG = Path(__file__).parent / "data" / "rig-mitsuba.yaml"
 SIZE = (0.10, 0.10)
@@ -128,7 +130,7 @@ def test_lambertian_plane_matches_the_pixel_model(rig, tmp_path):
 
 def test_anisotropic_ggx_and_its_tangent_frame_match_the_model(rig, tmp_path):
     """Inside eq. 6's family (GGX, Smith shadowing, dielectric Fresnel as a k = 0 conductor, diffuse base)
-    Mitsuba and facetsynth.microfacet.rho agree to 0.3 % (relative L1 over the sample): the mesh's texture
+    Mitsuba and facetsynth.models.microfacet.rho agree to 0.3 % (relative L1 over the sample): the mesh's texture
     coordinates put the BSDF's u axis at the frame azimuth (the mirrored frame is 10-40 % off)."""
     camera = rig.camera(SIZE[0])
     kd, ks, eta, au, av = np.array([0.2, 0.1, 0.05]), np.array([0.75, 0.5, 0.38]), 1.8, 0.1, 0.3
@@ -177,7 +179,7 @@ def test_scene_regions_read_the_measured_quadrants_and_refuse_what_they_cannot_r
 
 def test_measured_quadrants_match_the_virtual_rigs_model_of_the_same_files(rig, tmp_path):
     """Mitsuba's ``measured`` BSDF, one mesh per quadrant of rgl-quadrants, against the virtual rig's model of
-    the same scene (:class:`facetsynth.scene.Scene`, its RGLBRDF port box-filtered over 4 x 4 sub-pixels) under
+    the same scene (:class:`facetsynth.truth.scene.Scene`, its RGLBRDF port box-filtered over 4 x 4 sub-pixels) under
     three rig lights: relative L1 per quadrant and light at most 0.5 % (measured 0.07-0.48 %; bound 1 %) with
     the camera in the files' incident slot, where Mitsuba puts it (``si.wi``). The virtual rig puts the light
     there (docs/decisions.md, "Argument order"), and is 0.7-22 % off by the files' non-reciprocity (largest:

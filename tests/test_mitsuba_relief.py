@@ -1,4 +1,4 @@
-"""The ground-truth capture for shading normals (facetsynth.mitsuba_relief): a normal-mapped relief under an RTI
+"""The ground-truth capture for shading normals (facetsynth.truth.mitsuba_relief): a normal-mapped relief under an RTI
 dome of directional lights, seen by a top-down orthographic camera, rendered by Mitsuba 3.
 
 (a) geometry: the orthographic sensor images a point where the manifest camera (K) puts it; (b) the normal map's
@@ -16,9 +16,10 @@ import pytest
 pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install mitsuba, or the test extra): "
                                       "the independent-renderer tests need it")
 
-from facetsynth import manifest, microfacet  # noqa: E402
-from facetsynth import mitsuba_relief  # noqa: E402
-from facetsynth.fileio import read_exr, read_rgb  # noqa: E402
+from facetsynth.capture import manifest
+from facetsynth.models import microfacet  # noqa: E402
+from facetsynth.truth import mitsuba_relief  # noqa: E402
+from facetsynth.io.fileio import read_exr, read_rgb  # noqa: E402
 
 SIZE, LIGHTS, SPP = (48, 48), 24, 4
 KD = np.array([0.6, 0.5, 0.4])
@@ -134,7 +135,7 @@ def test_use_shadowing_function_is_off(tmp_path):
 # --- (c) radiometry --------------------------------------------------------------------------------------------
 
 def test_every_pixel_is_eq6_in_its_normal_frame(capture):
-    """The flat quadrant (n = +z) equals (kd / pi + GGX specular)(n.l) E (facetsynth.microfacet.rho) under every
+    """The flat quadrant (n = +z) equals (kd / pi + GGX specular)(n.l) E (facetsynth.models.microfacet.rho) under every
     light, and so does every tilted pixel in its own normal frame. The render is noiseless (one normal per pixel,
     a delta light, v = +z everywhere) and Mitsuba's isotropic GGX is eq. 6's: measured, relative error at most
     3e-4 (float32; 1e-7 typical) where n.l > 0, absolute 6e-8 everywhere; bounds 1e-3 and 1e-6 (the brief's:

@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from facetsynth.normals import NormalSettings, Normals, estimate, shading_frames, to_local
+from facetsynth.fit.normals import NormalSettings, Normals, estimate, shading_frames, to_local
 
 Z = np.array([0.0, 0.0, 1.0])
 PLAIN = NormalSettings(lower=0.0, upper=100.0, dark=0.0, iterations=0)   # Woodham's least squares on every valid sample
@@ -105,7 +105,7 @@ def test_lambertian_relief(rng):
 
 
 def test_specular_highlights(rng):
-    """3. GGX highlights 5-20x the diffuse (roughness 0.2, alpha = roughness^2 as in facetsynth.ggx), 1 %
+    """3. GGX highlights 5-20x the diffuse (roughness 0.2, alpha = roughness^2 as in facetsynth.models.ggx), 1 %
     noise: the trimmed fit stays within a degree or two; Woodham's plain least squares does not."""
     n, albedo, b, d = relief(rng)
     diffuse = b.mean(-1)
@@ -221,7 +221,7 @@ def test_a_flat_normal_map_is_the_plane_frame(rng):
     """separate writes +z normals for a flat sample (and under point lights, where `auto` estimates none): the
     capture then gives no shading frames, so no stage turns every direction by the identity, and the directions
     are bitwise those of a capture without normals; one tilted point turns them all into frames."""
-    from facetsynth.plane import PlaneGrid
+    from facetsynth.geometry.plane import PlaneGrid
     from facetsynth.stages.common import RectifiedCapture
     grid = PlaneGrid(0.05, 0.05, 4, 3)
     lights = np.column_stack([rng.uniform(-0.2, 0.2, (7, 2)), rng.uniform(0.1, 0.3, 7), np.ones(7)])

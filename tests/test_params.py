@@ -3,12 +3,13 @@
 import numpy as np
 import pytest
 
-from facetsynth import microfacet, params
-from facetsynth.grid import DirectionGrid
-from facetsynth.partial_ndf import SHADOWING_GRID
-from facetsynth.plane import PlaneGrid
-from facetsynth.scene import MaterialMaps
-from facetsynth.svbrdf import tabulate_truth
+from facetsynth.models import microfacet
+from facetsynth.fit import params
+from facetsynth.geometry.grid import DirectionGrid
+from facetsynth.fit.partial_ndf import SHADOWING_GRID
+from facetsynth.geometry.plane import PlaneGrid
+from facetsynth.truth.scene import MaterialMaps
+from facetsynth.models.svbrdf import tabulate_truth
 
 GRID = DirectionGrid(32, 128)
 O = np.array([0.0, -np.sin(np.radians(60)), np.cos(np.radians(60))])   # the rig's view, 60 deg from vertical
@@ -135,9 +136,9 @@ def write_standin(folder, fresnel_in_ndf="lobe"):
     ``fresnel_in_ndf``: "lobe", the NDF carries F at |o.n| in every cell (as if synthesis had brought every
     cell from a view at that cosine); "own", F(|o.h|) of the capture's own view everywhere (no synthesis).
     """
-    from facetsynth.fileio import write_exr, write_json
-    from facetsynth.render import light_geometry
-    from facetsynth.scene import Scene
+    from facetsynth.io.fileio import write_exr, write_json
+    from facetsynth.models.render import light_geometry
+    from facetsynth.truth.scene import Scene
     from facetsynth.stages.common import RectifiedCapture
 
     folder.mkdir(parents=True, exist_ok=True)
@@ -205,7 +206,7 @@ def run_params(folder, **settings):
 
 
 def test_params_stage_recovers_eta_and_ks_per_region_from_grazing_data(tmp_path):
-    from facetsynth.svbrdf import SVBRDF
+    from facetsynth.models.svbrdf import SVBRDF
     folder, truth = write_standin(tmp_path / "lobe")
     metrics = run_params(folder)
     model = SVBRDF.load(folder / "svbrdf")
@@ -228,8 +229,8 @@ def test_params_stage_keeps_the_default_where_the_ndf_holds_its_own_views_fresne
 
 def test_params_stage_without_grazing_coverage_keeps_and_records_the_default(tmp_path):
     """No light beyond grazing_deg: eta is not constrained; the default is kept and recorded."""
-    from facetsynth.fileio import read_exr
-    from facetsynth.svbrdf import SVBRDF
+    from facetsynth.io.fileio import read_exr
+    from facetsynth.models.svbrdf import SVBRDF
     folder, truth = write_standin(tmp_path / "nograzing")
     metrics = run_params(folder, grazing_deg=89.9, eta_default=1.45)
     model = SVBRDF.load(folder / "svbrdf")
@@ -328,8 +329,8 @@ def test_eta_interval_is_wide_where_the_data_do_not_constrain_eta():
 
 
 def test_params_stage_records_eta_intervals_and_the_ndf_spread(tmp_path):
-    from facetsynth.fileio import read_exr
-    from facetsynth.svbrdf import SVBRDF
+    from facetsynth.io.fileio import read_exr
+    from facetsynth.models.svbrdf import SVBRDF
     folder, truth = write_standin(tmp_path / "lobe")
     metrics = run_params(folder, max_eta_interval=0.2)
     model = SVBRDF.load(folder / "svbrdf")
@@ -357,7 +358,7 @@ def test_params_stage_interval_unit_sets_n_of_the_test(tmp_path):
     """Grazing samples with 2 % noise: counted per sample, per point or per representative the interval covers
     the truth, and it widens as the units get fewer (the unit changes n of the test, nothing else)."""
     from facetsynth.stages.params import fit_eta
-    from facetsynth.svbrdf import SVBRDF
+    from facetsynth.models.svbrdf import SVBRDF
     folder, truth = write_standin(tmp_path / "lobe")
     run_params(folder)
     model = SVBRDF.load(folder / "svbrdf")
@@ -384,7 +385,7 @@ def test_params_stage_interval_unit_sets_n_of_the_test(tmp_path):
 
 def test_params_stage_keeps_eta_where_it_is_not_identifiable_and_says_so(tmp_path):
     """No grazing light: the default is kept as before, and the interval (the whole range) tells the user."""
-    from facetsynth.svbrdf import SVBRDF
+    from facetsynth.models.svbrdf import SVBRDF
     folder, truth = write_standin(tmp_path / "nograzing")
     metrics = run_params(folder, grazing_deg=89.9, eta_default=1.45, eta_min=1.1, eta_max=3.5)
     model = SVBRDF.load(folder / "svbrdf")
@@ -398,7 +399,7 @@ def test_params_stage_keeps_eta_where_it_is_not_identifiable_and_says_so(tmp_pat
 def test_ndf_spread_skips_turning_frames_and_scores_a_constant_one():
     """A polar frame is one material at many rotations (skipped, said so); a constant frame is scored, and
     a point whose NDF differs from the rest shows in the spread."""
-    from facetsynth.scene import Scene
+    from facetsynth.truth.scene import Scene
     from facetsynth.evaluation.params import ndf_spread
     scene = Scene.from_dict({"name": "two", "size": [0.1, 0.1], "regions": [
         {"name": "turned", "where": {"rect": {"x": [-0.05, 0.0], "y": [-0.05, 0.05]}}, "kd": [0.2, 0.2, 0.2],
@@ -432,8 +433,8 @@ def test_ndf_spread_skips_turning_frames_and_scores_a_constant_one():
 def test_svbrdf_folder_without_eta_interval_still_loads(tmp_path):
     """Backward compatibility: a folder written before the interval channels loads with eta_lo = eta_hi = None;
     one written with them round-trips."""
-    from facetsynth.fileio import read_exr
-    from facetsynth.svbrdf import SVBRDF
+    from facetsynth.io.fileio import read_exr
+    from facetsynth.models.svbrdf import SVBRDF
     plane = PlaneGrid(0.1, 0.1, 2, 2)
     model = tabulate_truth(MaterialMaps(kd=np.full((4, 3), 0.1), ks=np.full((4, 3), 0.5), eta=np.full(4, 1.5),
                                         alpha_u=np.full(4, 0.2), alpha_v=np.full(4, 0.3), phi_frame=np.zeros(4),

@@ -1,4 +1,4 @@
-"""facetsynth.partial_ndf (eqs. 5, 10-12) and its stage at the numerical extremes (issue 7, part 2): the view in
+"""facetsynth.fit.partial_ndf (eqs. 5, 10-12) and its stage at the numerical extremes (issue 7, part 2): the view in
 the sample plane, a very rough lobe, the iteration cut short, float32 against float64 runs (push-pull, partial NDF,
 k-means, synthesis and the eta fit), and the stage's scatter parts. The common cases are in
 tests/test_reflectance.py."""
@@ -6,10 +6,12 @@ tests/test_reflectance.py."""
 import numpy as np
 import pytest
 
-from facetsynth import cluster, microfacet, params, tables
-from facetsynth import partial_ndf
-from facetsynth import synthesis
-from facetsynth.pushpull import push_pull, splat
+from facetsynth.fit import cluster, params
+from facetsynth.models import microfacet
+from facetsynth.io import tables
+from facetsynth.fit import partial_ndf
+from facetsynth.fit import synthesis
+from facetsynth.fit.pushpull import push_pull, splat
 
 from test_grid import GRID, O, sph, upper
 from test_params import C_GRAZING

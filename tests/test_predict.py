@@ -5,15 +5,16 @@ import json
 import numpy as np
 import pytest
 
-from facetsynth import cli, manifest
-from facetsynth.fileio import read_rgb
-from facetsynth.grid import DirectionGrid
-from facetsynth.metrics import image_scores
-from facetsynth.plane import PlaneGrid
-from facetsynth.predict import predict
-from facetsynth.scene import Scene
-from facetsynth.svbrdf import tabulate_truth
-from facetsynth.virtual_rig import VirtualRig, capture
+from facetsynth.app import cli
+from facetsynth.capture import manifest
+from facetsynth.io.fileio import read_rgb
+from facetsynth.geometry.grid import DirectionGrid
+from facetsynth.evaluation.metrics import image_scores
+from facetsynth.geometry.plane import PlaneGrid
+from facetsynth.app.predict import predict
+from facetsynth.truth.scene import Scene
+from facetsynth.models.svbrdf import tabulate_truth
+from facetsynth.truth.virtual_rig import VirtualRig, capture
 
 SCENE = """\
 name: predict-test

@@ -6,14 +6,14 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
-from facetsynth.cli import main
-from facetsynth.fileio import read_rgb
-from facetsynth.grid import DirectionGrid
-from facetsynth.plane import PlaneGrid
-from facetsynth.preview import (PreviewSettings, display_encode, mirror_light, preview_camera, render_preview)
-from facetsynth.scene import MaterialMaps
-from facetsynth.summary import summarise
-from facetsynth.svbrdf import tabulate_truth
+from facetsynth.app.cli import main
+from facetsynth.io.fileio import read_rgb
+from facetsynth.geometry.grid import DirectionGrid
+from facetsynth.geometry.plane import PlaneGrid
+from facetsynth.app.preview import PreviewSettings, display_encode, mirror_light, preview_camera, render_preview
+from facetsynth.truth.scene import MaterialMaps
+from facetsynth.app.summary import summarise
+from facetsynth.models.svbrdf import tabulate_truth
 
 PLANE = PlaneGrid(0.08, 0.06, 8, 6)
 P = PLANE.rows * PLANE.cols

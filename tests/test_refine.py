@@ -1,14 +1,14 @@
-"""Issue 29: the per-point refinement (facetsynth.refine) and the self-check's subsets and scores
-(facetsynth.selfcheck), against known answers."""
+"""Issue 29: the per-point refinement (facetsynth.fit.refine) and the self-check's subsets and scores
+(facetsynth.evaluation.selfcheck), against known answers."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from facetsynth.cluster import material_groups
-from facetsynth.refine import NormalSums, owned_kd, radiance_weights, solve
-from facetsynth.selfcheck import FrameScores, heldout_lights, relit_frames
+from facetsynth.fit.cluster import material_groups
+from facetsynth.fit.refine import NormalSums, owned_kd, radiance_weights, solve
+from facetsynth.evaluation.selfcheck import FrameScores, heldout_lights, relit_frames
 
 
 def _samples(rng, n_points=40, per_point=200, a=None, b=None, noise=0.0):
@@ -131,10 +131,10 @@ def test_frame_scores_against_known_errors():
 
 # --- the NDF's stretch and turn (issue 29) ----------------------------------------------------------------
 
-from facetsynth import microfacet  # noqa: E402
-from facetsynth.grid import DirectionGrid  # noqa: E402
-from facetsynth.params import normalise  # noqa: E402
-from facetsynth.refine import best_turns, stretch  # noqa: E402
+from facetsynth.models import microfacet  # noqa: E402
+from facetsynth.geometry.grid import DirectionGrid  # noqa: E402
+from facetsynth.fit.params import normalise  # noqa: E402
+from facetsynth.fit.refine import best_turns, stretch  # noqa: E402
 from facetsynth.stages.refine import ladder_minimum  # noqa: E402
 
 
@@ -239,8 +239,8 @@ def test_a_table_fitted_to_samples_of_turned_points_recovers_the_lobe_between_on
     16 x 40 places. The table fitted to them (eq. 6 read forwards for D) matches the truth's best bilinear
     table to 2 % where the samples reach, while a prior 3 x too wide is what it started from (the test can
     fail); cells no sample reaches keep the prior exactly."""
-    from facetsynth.grid import turn
-    from facetsynth.refine import solve_table, table_normal_equations
+    from facetsynth.geometry.grid import turn
+    from facetsynth.fit.refine import solve_table, table_normal_equations
     grid = DirectionGrid(16, 64)
     truth = _ggx_table(grid, 0.1, 0.3).ravel()
     prior = _ggx_table(grid, 0.3, 0.9).ravel()
@@ -297,10 +297,10 @@ def test_the_fits_figure_scores_every_model_against_the_same_samples(extreme_run
     the observations moved with the model's kd, so the wrong kd scored as well as the right one, and on a
     dome's leaf the fit's figure rose 0.129 -> 0.168 while the fit had lowered its error."""
     from dataclasses import replace
-    from facetsynth.fileio import read_npy
+    from facetsynth.io.fileio import read_npy
     from facetsynth.stages.common import RectifiedCapture
     from facetsynth.stages.refine import Settings, kd_ks, samples_rel_l2
-    from facetsynth.svbrdf import SVBRDF
+    from facetsynth.models.svbrdf import SVBRDF
     capture = RectifiedCapture.load(extreme_run["geometry"])
     model = SVBRDF.load(extreme_run["svbrdf"])
     spec, ok = read_npy(extreme_run["separate/specular.npy"]), read_npy(extreme_run["separate/valid.npy"])
@@ -317,7 +317,7 @@ def test_one_eta_per_material_gives_each_materials_points_their_median(extreme_r
     from dataclasses import replace
     from facetsynth.stages.common import RectifiedCapture
     from facetsynth.stages.refine import Settings, material_points, materials, one_eta_per_material
-    from facetsynth.svbrdf import SVBRDF
+    from facetsynth.models.svbrdf import SVBRDF
     capture = RectifiedCapture.load(extreme_run["geometry"])
     model = SVBRDF.load(extreme_run["svbrdf"])
     drift = replace(model, eta=1.4 + 0.2 * np.linspace(0.0, 1.0, model.n_points))
@@ -340,8 +340,8 @@ def test_the_sparse_table_solve_is_the_dense_one():
     half vectors on 16 x 64 they equal the equations written out dense sample by sample, and the solve equals
     the dense solve of the same system to round-off (measured 5e-15 relative); the ridge keeps unseen cells at
     the prior."""
-    from facetsynth.grid import DirectionGrid
-    from facetsynth.refine import solve_table, table_normal_equations
+    from facetsynth.geometry.grid import DirectionGrid
+    from facetsynth.fit.refine import solve_table, table_normal_equations
     rng = np.random.default_rng(3)
     grid = DirectionGrid(16, 64)
     n_cells = grid.n_theta * grid.n_phi

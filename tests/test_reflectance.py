@@ -3,10 +3,11 @@
 import numpy as np
 import pytest
 
-from facetsynth import microfacet, partial_ndf
-from facetsynth.grid import DirectionGrid
-from facetsynth.pushpull import push_pull, splat
-from facetsynth.separation import brdf_samples, diffuse_level, specular_residual
+from facetsynth.models import microfacet
+from facetsynth.fit import partial_ndf
+from facetsynth.geometry.grid import DirectionGrid
+from facetsynth.fit.pushpull import push_pull, splat
+from facetsynth.fit.separation import brdf_samples, diffuse_level, specular_residual
 
 GRID = DirectionGrid(32, 128)
 O = np.array([0.0, -0.8, 0.6])                 # the paper's view, 53 deg from vertical

@@ -1,4 +1,4 @@
-"""The workflow's shading normals against a ground truth: a Mitsuba relief (facetsynth.mitsuba_relief) imported,
+"""The workflow's shading normals against a ground truth: a Mitsuba relief (facetsynth.truth.mitsuba_relief) imported,
 separated and self-checked.
 
 Mitsuba renders the normal-mapped relief (tilts up to 33 deg, the quadrant x < 0, y < 0 exactly flat) under a
@@ -40,10 +40,10 @@ import pytest
 pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install mitsuba, or the test extra): "
                                       "the independent-renderer tests need it")
 
-from facetsynth import manifest  # noqa: E402
-from facetsynth import mitsuba_relief  # noqa: E402
-from facetsynth.fileio import read_exr  # noqa: E402
-from facetsynth.plane import PlaneGrid  # noqa: E402
+from facetsynth.capture import manifest  # noqa: E402
+from facetsynth.truth import mitsuba_relief  # noqa: E402
+from facetsynth.io.fileio import read_exr  # noqa: E402
+from facetsynth.geometry.plane import PlaneGrid  # noqa: E402
 from test_workflow import make_workdir, snakemake  # noqa: E402
 
 LIGHTS, SPP = 48, 1

@@ -1,5 +1,5 @@
 """The Snakemake report (`snakemake --report`): every figure of workflow/rules/report.smk is in it, with a
-caption, in its sample's and stage's category; and the figure functions of facetsynth.figures."""
+caption, in its sample's and stage's category; and the figure functions of facetsynth.app.figures."""
 
 import io
 import json
@@ -14,9 +14,9 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from PIL import Image
 
-from facetsynth import figures
-from facetsynth.colour import srgb_decode, srgb_encode
-from facetsynth.grid import DirectionGrid
+from facetsynth.app import figures
+from facetsynth.io.colour import srgb_decode, srgb_encode
+from facetsynth.geometry.grid import DirectionGrid
 from facetsynth.stencil.grid import SHAPE, unwrap
 
 STAGES = ["1 capture", "2 SVBRDF maps", "3 NDFs", "4 clusters", "5 held-out views", "6 stencil fits"]
@@ -69,7 +69,7 @@ def test_report_holds_every_figure(demo_run, repo, tmp_path):
     assert "Delta E / RMSE / PSNR / SSIM" in results["results/demo/report/stencil/cluster_000.png"]["caption"]
 
 
-# --- facetsynth.figures on tiny synthetic arrays -----------------------------------------------------
+# --- facetsynth.app.figures on tiny synthetic arrays -----------------------------------------------------
 
 def rendered(fig: Figure) -> np.ndarray:
     """The figure as an RGB array (rows from the top), as save_png would write it."""

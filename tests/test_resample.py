@@ -1,7 +1,7 @@
 """The resample stage (facetsynth.stages.resample): its scatter parts (issue 14) on the extremes scene of issue 7,
 part 2 (conftest's ``extreme_run``)."""
 
-from facetsynth import tables
+from facetsynth.io import tables
 
 
 def test_resample_scatter_parts_join_bitwise_into_the_unsplit_run(extreme_run, tmp_path, monkeypatch):

@@ -12,10 +12,10 @@ import cv2
 import numpy as np
 import pytest
 
-from facetsynth.errors import InputError
-from facetsynth.fileio import exposure_bits, read_frame, write_exr
-from facetsynth.hdr import merge_exposures
-from facetsynth.response import ResponseSettings, recover_response
+from facetsynth.io.errors import InputError
+from facetsynth.io.fileio import exposure_bits, read_frame, write_exr
+from facetsynth.capture.hdr import merge_exposures
+from facetsynth.capture.response import ResponseSettings, recover_response
 from facetsynth.stages import hdr
 
 TIMES = np.array([0.0125, 0.05, 0.2, 0.8])      # 4 exposures, 2 stops apart

@@ -17,7 +17,7 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
-from facetsynth.fileio import read_exr
+from facetsynth.io.fileio import read_exr
 from facetsynth.rig.cameras import (CameraBackend, CameraError, Gphoto2Camera, WatchFolderCamera, WatchSettings,
                                     decode_raw, nearest_choice, open_camera, parse_shutter_speed)
 

@@ -23,14 +23,14 @@ import yaml
 from test_rig_conformance import host_firmware, spawn  # noqa: F401
 from test_rig_faults import FaultProxy
 
-from facetsynth import manifest
-from facetsynth.cli import main
-from facetsynth.errors import InputError
-from facetsynth.fileio import write_json
+from facetsynth.capture import manifest
+from facetsynth.app.cli import main
+from facetsynth.io.errors import InputError
+from facetsynth.io.fileio import write_json
 from facetsynth.rig import session
 from facetsynth.rig.emulator import PtyServer, VirtualController
 from facetsynth.rig.protocol import RigError
-from facetsynth.virtual_rig import VirtualRig
+from facetsynth.truth.virtual_rig import VirtualRig
 
 ROOT = Path(__file__).resolve().parents[1]
 VIRTUAL_RIG = ROOT / "rig/descriptions/virtual-demo.yaml"
@@ -118,8 +118,8 @@ def test_a_rig_capture_records_the_calibrated_lights_and_what_the_camera_saw(uni
         np.testing.assert_allclose(frame["light"]["position"], vrig.led_position(led, steps), atol=1e-12)
         assert [e["time"] for e in frame["exposures"]] == [0.01, 0.1, 1.0]
     # the frames are what the virtual camera renders at the state the controller reported
-    from facetsynth.fileio import read_rgb
-    from facetsynth.virtual_rig import VirtualCamera
+    from facetsynth.io.fileio import read_rgb
+    from facetsynth.truth.virtual_rig import VirtualCamera
     camera = VirtualCamera(SCENE, vrig, seed=3, noise=False)
     steps, led = plan[7]
     longest = read_rgb(uninterrupted / captured["frames"][7]["exposures"][2]["file"])

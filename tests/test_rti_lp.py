@@ -14,10 +14,12 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
-from facetsynth import cli, manifest, microfacet, transfer
-from facetsynth.errors import InputError
-from facetsynth.fileio import read_codes
-from facetsynth.normals import estimate, shading_frames, to_local
+from facetsynth.app import cli
+from facetsynth.capture import manifest, transfer
+from facetsynth.models import microfacet
+from facetsynth.io.errors import InputError
+from facetsynth.io.fileio import read_codes
+from facetsynth.fit.normals import estimate, shading_frames, to_local
 from facetsynth.rti import lp
 
 
@@ -33,7 +35,7 @@ def spiral_dome(count: int, z_min: float = 0.25) -> np.ndarray:
 
 
 def srgb_codes(linear: np.ndarray) -> np.ndarray:
-    """8-bit sRGB codes of linear values (IEC 61966-2-1 encoding; facetsynth.transfer only decodes)."""
+    """8-bit sRGB codes of linear values (IEC 61966-2-1 encoding; facetsynth.capture.transfer only decodes)."""
     v = np.clip(linear, 0.0, 1.0)
     encoded = np.where(v <= 0.0031308, 12.92 * v, 1.055 * np.power(np.maximum(v, 1e-12), 1 / 2.4) - 0.055)
     return np.clip(np.round(255 * encoded), 0, 255).astype(np.uint8)
@@ -57,7 +59,7 @@ def write_lp(path, files, directions, bom=False) -> None:
 
 def pixel_world_xy(width: int, height: int, pixel_m: float) -> np.ndarray:
     """(H, W, 2) world (x, y) of each pixel centre as the module docstring states it: x right, y up, the image
-    centre at the origin (independent of facetsynth.camera: the test's own reading of the convention)."""
+    centre at the origin (independent of facetsynth.geometry.camera: the test's own reading of the convention)."""
     rows, cols = np.mgrid[0:height, 0:width].astype(float)
     return np.stack([(cols - (width - 1) / 2) * pixel_m, ((height - 1) / 2 - rows) * pixel_m], axis=-1)
 

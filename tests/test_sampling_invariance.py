@@ -1,17 +1,18 @@
 """Issue 13 item 1: a point's partial NDF must not depend on where it sits under the lights.
 
-Light-plane interpolation (facetsynth.lightplane), clustering on a coarse common domain
-(facetsynth.cluster.coarse / common_domain / choose_k's spread rule) and representatives fitted from
-their members' pooled samples (facetsynth.partial_ndf.pooled_fit), against analytic truth.
+Light-plane interpolation (facetsynth.geometry.lightplane), clustering on a coarse common domain
+(facetsynth.fit.cluster.coarse / common_domain / choose_k's spread rule) and representatives fitted from
+their members' pooled samples (facetsynth.fit.partial_ndf.pooled_fit), against analytic truth.
 """
 
 import numpy as np
 import pytest
 
-from facetsynth import cluster, microfacet, partial_ndf
-from facetsynth.grid import DirectionGrid
-from facetsynth.lightplane import LightTriangulation
-from facetsynth.render import light_geometry
+from facetsynth.fit import cluster, partial_ndf
+from facetsynth.models import microfacet
+from facetsynth.geometry.grid import DirectionGrid
+from facetsynth.geometry.lightplane import LightTriangulation
+from facetsynth.models.render import light_geometry
 
 GRID = DirectionGrid(32, 128)
 CAMERA = np.array([0.0, -0.8, 0.6])          # the demo camera: 1 m away, 0.6 m up, on the -y side

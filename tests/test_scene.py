@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from facetsynth.errors import InputError
-from facetsynth.scene import Scene
+from facetsynth.io.errors import InputError
+from facetsynth.truth.scene import Scene
 
 SCENES = ["demo", "wallpaper", "satin", "brushed", "card"]
 

@@ -1,13 +1,13 @@
-"""facetsynth.separation (eqs. 8-9) and the separate stage at the numerical extremes (issue 7, part 2): eq. 8 up
+"""facetsynth.fit.separation (eqs. 8-9) and the separate stage at the numerical extremes (issue 7, part 2): eq. 8 up
 to grazing light, eq. 9 with near-mirror and very rough lobes, saturated and NaN / Inf samples, a NaN frame. The
 common cases are in tests/test_reflectance.py."""
 
 import numpy as np
 import pytest
 
-from facetsynth import microfacet
-from facetsynth.plane import PlaneGrid
-from facetsynth.separation import brdf_samples, diffuse_level, specular_residual
+from facetsynth.models import microfacet
+from facetsynth.geometry.plane import PlaneGrid
+from facetsynth.fit.separation import brdf_samples, diffuse_level, specular_residual
 
 from test_grid import O, sph, unit
 from test_stages import eq9_truth, one_material, rig_lights, write_rectified
@@ -16,7 +16,7 @@ from test_stages import eq9_truth, one_material, rig_lights, write_rectified
 def test_separate_stage_refuses_a_nan_frame_naming_the_pixel(tmp_path):
     """A NaN (or Inf) in a rectified frame is bad input: separate fails with an InputError naming the
     file and the first bad pixel, and writes nothing."""
-    from facetsynth.errors import InputError
+    from facetsynth.io.errors import InputError
     from facetsynth.stages import separate
 
     def damage(q, rgb, saturated):
@@ -38,7 +38,7 @@ def test_saturated_and_nan_samples_are_invalid_and_kd_comes_from_the_rest(tmp_pa
     """Eq. 9 with bad samples. (a) In the stage, a pixel flagged saturated in the rectified frame is an
     invalid sample and its point's kd comes from the other frames, exactly. (b) In the pure function, a
     NaN or Inf sample (even one passed as valid) is treated as invalid: kd is what the other samples give."""
-    from facetsynth.fileio import read_exr
+    from facetsynth.io.fileio import read_exr
     from facetsynth.stages import separate
     kd = (0.3, 0.2, 0.1)
 

@@ -15,15 +15,7 @@ import serial
 from facetsynth.rig import protocol
 from facetsynth.rig.driver import RigController
 from facetsynth.rig.emulator import ControllerState, PtyServer, VirtualController, virtual_port
-from facetsynth.rig.protocol import (
-    ErrorCode,
-    ErrReply,
-    OkReply,
-    ProtocolError,
-    RigError,
-    RigInfo,
-    RigTimeoutError,
-)
+from facetsynth.rig.protocol import ErrorCode, ErrReply, OkReply, ProtocolError, RigError, RigInfo, RigTimeoutError
 
 N_LEDS = 40
 MAX_STEPS = 24000

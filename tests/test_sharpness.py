@@ -1,10 +1,10 @@
-"""Lobe sharpness from the samples, and the direction grid it calls for (facetsynth.sharpness, issue 7)."""
+"""Lobe sharpness from the samples, and the direction grid it calls for (facetsynth.fit.sharpness, issue 7)."""
 
 import numpy as np
 import pytest
 
-from facetsynth import microfacet
-from facetsynth.sharpness import grid_resolution, lobe_widths
+from facetsynth.models import microfacet
+from facetsynth.fit.sharpness import grid_resolution, lobe_widths
 
 
 def ggx_samples(alpha_u, alpha_v, phi_frame, n_lights=300, view_theta_deg=50.0):

@@ -11,8 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
-from facetsynth import microfacet, tables
-from facetsynth.plane import PlaneGrid
+from facetsynth.models import microfacet
+from facetsynth.io import tables
+from facetsynth.geometry.plane import PlaneGrid
 
 from test_grid import unit, upper
 
@@ -97,7 +98,7 @@ def test_pipeline_hdr_and_separation(extreme_run):
     """The mirror lobe saturates every exposure at some pixels (HDR flags them, rectify carries the flag,
     separate marks those samples invalid); kd of eq. 9 is exact where there is no specular (ks = 0), ~0
     where there is no diffuse (kd = 0, the near-mirror tail between lights is tiny), and every tensor is finite."""
-    from facetsynth.fileio import read_exr
+    from facetsynth.io.fileio import read_exr
     hdr = metrics_of(extreme_run["root"] / "hdr/metrics.json")
     assert hdr["saturated_pixels"] > 0 and hdr["median_rel_error"] < 1e-3
     cap, truth, interior = interior_truth(extreme_run["geometry"])
@@ -125,8 +126,8 @@ def test_pipeline_model_is_finite_and_predicts_the_capture(extreme_run):
     predicting nothing); alpha 1 / eta 1.05 within 2 %. Stated: on the ks = 0 quadrant the model's ks is not 0 (the 1.2 % rectification
     residual looks like a broad lobe, and ks is that lobe's scale over F(c, eta) ~ 0.04), but its radiance
     is right to 1 %."""
-    from facetsynth.render import light_geometry
-    from facetsynth.svbrdf import SVBRDF
+    from facetsynth.models.render import light_geometry
+    from facetsynth.models.svbrdf import SVBRDF
     cap, truth, interior = interior_truth(extreme_run["geometry"])
     model = SVBRDF.load(extreme_run["svbrdf"])
     assert np.isfinite(model.eta).all() and model.eta.min() >= 1.05 and model.eta.max() <= 4.0
@@ -171,9 +172,9 @@ def write_rectified(folder: Path, scene_text: str, plane: PlaneGrid, lights: np.
                     visible: np.ndarray | None = None, damage=None) -> Path:
     """A rectified capture made directly from the scene's truth (exact radiance at the cell centres):
     geometry.json and one EXR per light. ``damage(q, rgb, saturated)`` may alter frame q in place."""
-    from facetsynth.fileio import write_exr, write_json
-    from facetsynth.render import radiance
-    from facetsynth.scene import Scene
+    from facetsynth.io.fileio import write_exr, write_json
+    from facetsynth.models.render import radiance
+    from facetsynth.truth.scene import Scene
     folder.mkdir(parents=True, exist_ok=True)
     (folder / "scene.yaml").write_text(scene_text)
     p = plane.rows * plane.cols
@@ -235,8 +236,8 @@ def test_all_diffuse_sample_gives_a_lambertian_model(tmp_path):
     run on that noise (eq. 15 is scale-free, so noise looks like 36 distinct NDFs), but params turns it
     into ks <= 1e-5, so the model is Lambertian (rho = kd / pi to 1e-5) in every direction pair, and eta
     keeps the default (no specular signal at grazing)."""
-    from facetsynth.fileio import read_exr
-    from facetsynth.svbrdf import SVBRDF
+    from facetsynth.io.fileio import read_exr
+    from facetsynth.models.svbrdf import SVBRDF
     kd = (0.45, 0.25, 0.05)
     geometry = write_rectified(tmp_path / "cap", one_material(kd, (0, 0, 0)), PlaneGrid(0.1, 0.1, 6, 6), rig_lights())
     f = run_per_point_stages(tmp_path, geometry, n_theta=16)
@@ -259,9 +260,9 @@ def test_single_point_sample_runs_every_stage(tmp_path):
     """A sample of a single rectified cell: every per-point stage runs (k-means with one point, synthesis
     with one exemplar, eta with one representative); kd is exact, the model finite, and it predicts the
     point's own frames within 15 % rms (one partial NDF, completed only from its own rotations)."""
-    from facetsynth.fileio import read_exr
-    from facetsynth.render import light_geometry
-    from facetsynth.svbrdf import SVBRDF
+    from facetsynth.io.fileio import read_exr
+    from facetsynth.models.render import light_geometry
+    from facetsynth.models.svbrdf import SVBRDF
     kd, ks = (0.2, 0.3, 0.1), (0.6, 0.6, 0.6)
     lights = rig_lights(21, 17)
     geometry = write_rectified(tmp_path / "cap", one_material(kd, ks, alpha=(0.25, 0.25)), PlaneGrid(0.1, 0.1, 1, 1),
@@ -285,8 +286,8 @@ def test_single_point_sample_runs_every_stage(tmp_path):
 def test_tiles_with_no_visible_point(tmp_path):
     """272 points, the first tile of 256 not visible: invisible points get kd = 0, label -1, zero weights,
     ks = 0 and a model that is 0; the 16 visible points of the second tile get kd exactly."""
-    from facetsynth.fileio import read_exr
-    from facetsynth.svbrdf import SVBRDF
+    from facetsynth.io.fileio import read_exr
+    from facetsynth.models.svbrdf import SVBRDF
     plane = PlaneGrid(0.1, 0.1, 16, 17)
     visible = np.zeros(272, bool)
     visible[256:] = True

@@ -5,12 +5,13 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 import facetsynth
-from facetsynth import microfacet, params
-from facetsynth.errors import InputError
-from facetsynth.grid import DirectionGrid
-from facetsynth.plane import PlaneGrid
-from facetsynth.scene import MaterialMaps
-from facetsynth.svbrdf import SVBRDF, mixture_at, tabulate_truth
+from facetsynth.models import microfacet
+from facetsynth.fit import params
+from facetsynth.io.errors import InputError
+from facetsynth.geometry.grid import DirectionGrid
+from facetsynth.geometry.plane import PlaneGrid
+from facetsynth.truth.scene import MaterialMaps
+from facetsynth.models.svbrdf import SVBRDF, mixture_at, tabulate_truth
 
 from test_grid import GRID, O, sph
 
@@ -181,7 +182,7 @@ def test_normal_frames_and_flat_models_are_unchanged(truth_model, tmp_path):
 
 
 def test_normal_exr_round_trip(truth_model, tmp_path):
-    from facetsynth.fileio import read_exr
+    from facetsynth.io.fileio import read_exr
     _, model = truth_model
     normal = random_normals(1)
     bumpy = with_normal(model, normal)
@@ -206,7 +207,7 @@ def test_normal_exr_round_trip(truth_model, tmp_path):
 def test_constant_tilted_normal_is_the_flat_model_with_directions_rotated(truth_model):
     """rho(x, i, o) with n(x) = n is the flat model's rho(x, R i, R o), R n = +z; 0 below either horizon (the
     shading frame's and the sample plane's); reciprocal, finite, non-negative."""
-    from facetsynth.normals import shading_frames
+    from facetsynth.fit.normals import shading_frames
     _, model = truth_model
     n = tilted(25.0, 130.0)
     R = shading_frames(n)
@@ -241,7 +242,7 @@ def test_constant_tilted_normal_is_the_flat_model_with_directions_rotated(truth_
 @pytest.mark.parametrize("bad", ["nan", "not unit", "facing down", "horizontal", "no Z channel", "wrong size",
                                  "missing"])
 def test_bad_normal_files_are_rejected_in_one_line(truth_model, tmp_path, bad):
-    from facetsynth.fileio import write_exr
+    from facetsynth.io.fileio import write_exr
     _, model = truth_model
     folder = tmp_path / "svbrdf"
     with_normal(model, random_normals(2)).save(folder)
@@ -279,7 +280,7 @@ def test_eq20_measured_fresnel_at_grazing_light():
     A(k) is tabulated on the 16 x 32 shadowing grid, whose last ring is at 87.2 deg, and held constant
     beyond it, while the true A falls to alpha/2 at 90 deg; so A(i) is too large and F_m too high there.
     Exactly at 90 deg the model's factor is 0 and F_m = 0, which the caller excludes."""
-    from facetsynth.svbrdf import tabulate_truth
+    from facetsynth.models.svbrdf import tabulate_truth
     maps = MaterialMaps(kd=np.zeros((1, 3)), ks=np.full((1, 3), 0.8), eta=np.array([1.5]), alpha_u=np.array([0.25]),
                         alpha_v=np.array([0.4]), phi_frame=np.array([0.5]), region=np.zeros(1, int))
     model = tabulate_truth(maps, GRID, PlaneGrid(0.1, 0.1, 1, 1))
@@ -308,7 +309,7 @@ def test_lobe_narrower_than_a_cell_keeps_its_energy_and_eq5(alpha):
     32 x 128 grid: the table is renormalised, so integral (n.h) D = 1 exactly (ks is kept) though the peak
     is lost; eq. 5 from it gives A(k) = closed-form Smith within 1 % up to 75 deg (all microfacets near n);
     the model is finite and non-negative at the mirror direction and at grazing."""
-    from facetsynth.svbrdf import tabulate_truth
+    from facetsynth.models.svbrdf import tabulate_truth
     model = tabulate_truth(one_point_maps(alpha, alpha), GRID, PlaneGrid(0.1, 0.1, 1, 1))
     assert GRID.integrate(model.ndf[0].astype(float) * GRID.directions[..., 2]) == pytest.approx(1.0, abs=1e-6)
     assert params.specular_coefficient(model.ndf[0], GRID) == pytest.approx(1.0, abs=1e-6)
@@ -327,7 +328,7 @@ def test_very_rough_tabulated_model_matches_eq6():
     error below 1e-3 (3e-3) and at most 2e-3 (3 %) while both directions are within 85 deg of the normal;
     beyond, up to 10 % (15 %) (stated: A(k) is held constant beyond the shadowing
     grid's last ring, 87.2 deg, where the true A keeps falling)."""
-    from facetsynth.svbrdf import tabulate_truth
+    from facetsynth.models.svbrdf import tabulate_truth
     rng = np.random.default_rng(7)
     wi, wo = upper(rng, 20000), upper(rng, 20000)
     for au, av, med, inner_max, all_max in ((1.0, 1.0, 1e-3, 2e-3, 0.1), (1.0, 0.5, 3e-3, 0.03, 0.15)):

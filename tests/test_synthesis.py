@@ -10,11 +10,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from facetsynth import microfacet
-from facetsynth import synthesis
-from facetsynth.cluster import constrained_least_squares, features, interpolation_weights, kmeans
-from facetsynth.grid import DirectionGrid
-from facetsynth.plane import PlaneGrid
+from facetsynth.models import microfacet
+from facetsynth.fit import synthesis
+from facetsynth.fit.cluster import constrained_least_squares, features, interpolation_weights, kmeans
+from facetsynth.geometry.grid import DirectionGrid
+from facetsynth.geometry.plane import PlaneGrid
 
 from test_stages import metrics_of, one_material, rig_lights, write_rectified
 
@@ -413,9 +413,9 @@ def test_identical_ndfs_everywhere_through_the_stages(tmp_path):
     synthesize stage completes it beyond its own domain (from rotated copies of itself, which are exact
     matches, or by azimuthal symmetry), so on every covered cell the completed NDF equals the true
     isotropic GGX (to the half-float rounding of the stored partial NDFs, 2^-11), and nothing is NaN."""
-    from facetsynth.fileio import write_json
+    from facetsynth.io.fileio import write_json
     from facetsynth.stages import cluster, synthesize
-    from facetsynth.tables import support_writer
+    from facetsynth.io.tables import support_writer
     geometry = write_rectified(tmp_path / "cap", one_material((0.2,) * 3, (0.5,) * 3), PlaneGrid(0.1, 0.1, 5, 5),
                                rig_lights(2, 2))
     d, w = ggx_partial([0.0], scale=0.7, alpha=(0.3, 0.3))

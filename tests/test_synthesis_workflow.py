@@ -11,7 +11,7 @@ import shutil
 import numpy as np
 import pytest
 
-from facetsynth.tables import SupportTable
+from facetsynth.io.tables import SupportTable
 from test_workflow import NOISE_FREE, make_workdir, metrics, snakemake
 
 # five samples through capture .. synthesize (5 min on 2 cores): with the whole-workflow tests in make test-scenes,

@@ -1,4 +1,4 @@
-"""Support tables (facetsynth.tables): the slices and partial NDFs stored on their support (issue 14's disk
+"""Support tables (facetsynth.io.tables): the slices and partial NDFs stored on their support (issue 14's disk
 budget), read back as the dense tensors they stand for."""
 
 import json
@@ -6,8 +6,8 @@ import json
 import numpy as np
 import pytest
 
-from facetsynth import tables
-from facetsynth.tables import SupportTable, join_tables, support_writer
+from facetsynth.io import tables
+from facetsynth.io.tables import SupportTable, join_tables, support_writer
 
 
 def write(folder, support, **values):

@@ -1,4 +1,4 @@
-"""Declared transfer functions of 8-bit exposures (facetsynth.transfer) and the hdr stage on captures of one
+"""Declared transfer functions of 8-bit exposures (facetsynth.capture.transfer) and the hdr stage on captures of one
 8-bit exposure per frame (a light dome's one sRGB JPEG per light). The errors measured are printed
 (pytest -s)."""
 
@@ -9,12 +9,12 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 
-from facetsynth import manifest
-from facetsynth.errors import InputError
-from facetsynth.fileio import read_frame, write_exr
-from facetsynth.response import Response
+from facetsynth.capture import manifest
+from facetsynth.io.errors import InputError
+from facetsynth.io.fileio import read_frame, write_exr
+from facetsynth.capture.response import Response
 from facetsynth.stages import hdr
-from facetsynth.transfer import Transfer, decode, parse, table
+from facetsynth.capture.transfer import Transfer, decode, parse, table
 from test_response import LIGHTS, MANIFEST, SIZE   # the bracket tests' 8-bit capture: camera and lights
 
 # --- the transfer functions ---------------------------------------------------------------------------

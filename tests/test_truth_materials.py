@@ -29,12 +29,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.special import erf
 
-from facetsynth import manifest, microfacet
-from facetsynth.errors import InputError
-from facetsynth.fileio import read_rgb
-from facetsynth.scene import Scene, measured_kd
+from facetsynth.capture import manifest
+from facetsynth.models import microfacet
+from facetsynth.io.errors import InputError
+from facetsynth.io.fileio import read_rgb
+from facetsynth.truth.scene import Scene, measured_kd
 from facetsynth.stencil.readers import rgl_eval
-from facetsynth.virtual_rig import VirtualRig, capture
+from facetsynth.truth.virtual_rig import VirtualRig, capture
 
 SATIN = "satin_rosaline_rgb.bsdf"
 NEW_SCENES = ["rgl-quadrants", "measured-satin", "height-correlated", "conductor", "coated"]

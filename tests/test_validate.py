@@ -5,14 +5,14 @@ import json
 import numpy as np
 import pytest
 
-from facetsynth import manifest
-from facetsynth.grid import DirectionGrid
-from facetsynth.plane import PlaneGrid
-from facetsynth.scene import Scene
+from facetsynth.capture import manifest
+from facetsynth.geometry.grid import DirectionGrid
+from facetsynth.geometry.plane import PlaneGrid
+from facetsynth.truth.scene import Scene
 from facetsynth.stages import heldout_capture, validate
-from facetsynth.svbrdf import tabulate_truth
-from facetsynth.virtual_rig import VirtualRig
-from facetsynth.ward import WardSVBRDF, fit_points, ward_specular
+from facetsynth.models.svbrdf import tabulate_truth
+from facetsynth.truth.virtual_rig import VirtualRig
+from facetsynth.models.ward import WardSVBRDF, fit_points, ward_specular
 
 from test_predict import SCENE
 
@@ -97,7 +97,7 @@ TRUSTED_KEYS = ("rel_l2", "specular_rel_l2", "frame_psnr_median_db", "frame_psnr
 
 
 def test_relative_l2_against_hand_computed_values():
-    from facetsynth.metrics import relative_l2
+    from facetsynth.evaluation.metrics import relative_l2
     truth = np.zeros((2, 2, 2, 3))
     truth[0, 0, 0] = [3.0, 0.0, 0.0]
     truth[1, 1, 1] = [0.0, 4.0, 0.0]
@@ -120,7 +120,7 @@ def test_relative_l2_against_hand_computed_values():
 
 
 def test_frame_psnr_against_hand_computed_values():
-    from facetsynth.metrics import finite_or_none, frame_psnr
+    from facetsynth.evaluation.metrics import finite_or_none, frame_psnr
     truth = np.zeros((4, 1, 2, 3))
     truth[0, 0, 0] = 2.0                          # peak 2
     truth[1, 0, 1] = 0.5                          # peak 0.5: its own peak, not the view's
@@ -148,7 +148,7 @@ def test_frame_psnr_against_hand_computed_values():
 
 
 def test_spread_about_mean_against_hand_computed_values():
-    from facetsynth.metrics import spread_about_mean
+    from facetsynth.evaluation.metrics import spread_about_mean
     tables = np.array([[1.0, 3.0], [3.0, 1.0]])                   # mean [2, 2]
     weight = np.array([1.0, 3.0])
     expected = np.sqrt((1 * 1 + 3 * 1) / (1 * 4 + 3 * 4))
@@ -160,7 +160,7 @@ def test_spread_about_mean_against_hand_computed_values():
 
 def test_diffuse_truth_is_the_rigs_render_of_the_diffuse_term(repo, tmp_path):
     """With ks = 0 the truth is its diffuse term: diffuse_truth must equal the virtual rig's own render."""
-    from facetsynth.render import radiance
+    from facetsynth.models.render import radiance
     scene = Scene.from_dict({"name": "matte", "size": [0.1, 0.1], "regions": [
         {"name": "a", "where": {"all": True}, "kd": [0.3, 0.2, 0.1], "ks": [0.0, 0.0, 0.0], "eta": 1.5,
          "alpha": [0.2, 0.2], "frame": {"angle_deg": 0}}]})
@@ -222,7 +222,7 @@ def test_diffuse_truth_reproduces_a_matte_heldout_capture(repo, tmp_path, calibr
     when the rig's true camera pose and LEDs differ from the calibration its manifest records."""
     import yaml
 
-    from facetsynth.fileio import read_rgb
+    from facetsynth.io.fileio import read_rgb
     desc = yaml.safe_load((repo / "tests/data/rig-tiny.yaml").read_text())
     if calibration_error:
         desc["calibration_error"] = {"led_intensity": 0.05, "led_position_m": 0.002, "camera_rotation_deg": 0.3,

@@ -3,10 +3,11 @@
 import numpy as np
 import pytest
 
-from facetsynth import manifest, microfacet
-from facetsynth.fileio import read_rgb
-from facetsynth.scene import Scene
-from facetsynth.virtual_rig import VirtualRig, capture
+from facetsynth.capture import manifest
+from facetsynth.models import microfacet
+from facetsynth.io.fileio import read_rgb
+from facetsynth.truth.scene import Scene
+from facetsynth.truth.virtual_rig import VirtualRig, capture
 
 
 @pytest.fixture(scope="module")

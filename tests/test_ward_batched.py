@@ -1,4 +1,4 @@
-"""The batched Levenberg-Marquardt of the per-point Ward baseline (facetsynth.ward.fit_points) against ground
+"""The batched Levenberg-Marquardt of the per-point Ward baseline (facetsynth.models.ward.fit_points) against ground
 truth, against the per-point scipy fit it replaced, and at the extremes."""
 
 import time
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
-from facetsynth import ward
+from facetsynth.models import ward
 
 from test_grid import O, upper
 
@@ -222,7 +222,7 @@ def test_ward_lm_that_does_not_converge_and_bad_samples():
     """The per-point Ward baseline's LM. Cut short (max_iterations = 3) it reports ok = False with finite
     parameters inside the alpha range and phi in [0, pi); given its full budget it recovers the lobe
     (ks, alphas to 1e-3). A NaN or Inf sample is dropped, not propagated: the fit equals the fit without it."""
-    from facetsynth import ward
+    from facetsynth.models import ward
     rng = np.random.default_rng(5)
     wi, wo = upper(rng, 300), np.broadcast_to(O, (300, 3))
     truth = (0.5, 0.1, 0.3, 0.4)

@@ -12,14 +12,15 @@ import pytest
 
 from conftest import hdr_outputs, rectify_into
 
-from facetsynth import selfcheck, tables
-from facetsynth.fileio import read_rgb, write_exr
+from facetsynth.evaluation import selfcheck
+from facetsynth.io import tables
+from facetsynth.io.fileio import read_rgb, write_exr
 from facetsynth.stages.common import RectifiedCapture
-from facetsynth.svbrdf import SVBRDF
+from facetsynth.models.svbrdf import SVBRDF
 from facetsynth.evaluation.partial_ndf import variant_errors
 from facetsynth.evaluation.truth import truth_of
-from facetsynth.tables import SupportTable
-from facetsynth.virtual_rig import VirtualRig, capture
+from facetsynth.io.tables import SupportTable
+from facetsynth.truth.virtual_rig import VirtualRig, capture
 
 SNAKEMAKE = [sys.executable, "-m", "snakemake", "--cores", "2"]
 NOISE_FREE = ["--configfile", "config/config.yaml", "noise-free.yaml"]
@@ -334,7 +335,7 @@ def test_invalid_config_fails_before_any_job_naming_the_key(repo, tmp_path):
 
 
 def test_cli_check_reports_a_valid_capture_and_names_a_bad_frame(foreign_capture, tmp_path, capsys):
-    from facetsynth.cli import main
+    from facetsynth.app.cli import main
     assert main(["check", str(foreign_capture)]) == 0
     assert "valid capture, 30 frames, 90 exposure files, camera 120x80" in capsys.readouterr().out
     folder = tmp_path / "cap"

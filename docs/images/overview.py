@@ -10,9 +10,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from facetsynth.fileio import read_rgb  # noqa: E402
-from facetsynth.preview import PreviewSettings, display_encode, exposure_scale, render_preview  # noqa: E402
-from facetsynth.svbrdf import SVBRDF  # noqa: E402
+from facetsynth.io.fileio import read_rgb  # noqa: E402
+from facetsynth.app.preview import PreviewSettings, display_encode, exposure_scale, render_preview  # noqa: E402
+from facetsynth.models.svbrdf import SVBRDF  # noqa: E402
 
 sample = Path(sys.argv[1] if len(sys.argv) > 1 else "results/demo")
 out = Path(__file__).with_suffix(".png")

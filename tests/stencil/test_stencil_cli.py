@@ -4,7 +4,7 @@ import json
 
 import numpy as np
 
-from facetsynth.cli import main
+from facetsynth.app.cli import main
 from facetsynth.stencil import readers
 from facetsynth.stencil.model import evaluate_utia
 from facetsynth.stencil.export import model_from_json, model_to_json

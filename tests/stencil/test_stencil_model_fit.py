@@ -6,7 +6,7 @@ import pytest
 
 from conftest import RGL_FILES
 from test_grid import sph
-from facetsynth.microfacet import rho
+from facetsynth.models.microfacet import rho
 from facetsynth.stencil import edit, grid, kurt, readers, scores
 from facetsynth.stencil.export import model_from_json, model_to_json
 from facetsynth.stencil.fit import fit, fit_file

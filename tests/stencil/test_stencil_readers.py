@@ -5,7 +5,7 @@ import struct
 import numpy as np
 import pytest
 
-from facetsynth.errors import InputError
+from facetsynth.io.errors import InputError
 from facetsynth.stencil import grid, readers
 
 from conftest import RGL_DIR
@@ -39,7 +39,7 @@ def test_utia_exr_round_trip_and_errors(tmp_path):
     p = tmp_path / "x.exr"
     readers.write_utia_exr(p, b)
     np.testing.assert_array_equal(readers.read_utia_exr(p), b)
-    from facetsynth.fileio import write_exr
+    from facetsynth.io.fileio import write_exr
     write_exr(tmp_path / "bad.exr", {"RGB": np.zeros((10, 288, 3), np.float32)})
     with pytest.raises(InputError, match="288x288"):
         readers.read_utia_exr(tmp_path / "bad.exr")

@@ -9,12 +9,12 @@ stencil fit and its scoring against the truth, not the synthesis.
 import numpy as np
 import pytest
 
-from facetsynth.grid import DirectionGrid
-from facetsynth.plane import PlaneGrid
-from facetsynth.scene import Scene
+from facetsynth.geometry.grid import DirectionGrid
+from facetsynth.geometry.plane import PlaneGrid
+from facetsynth.truth.scene import Scene
 from facetsynth.stages.stencil_fit import cluster_metrics, fit_clusters, true_axes_deg
 from facetsynth.stencil.fit import axis_error_deg
-from facetsynth.svbrdf import tabulate_truth
+from facetsynth.models.svbrdf import tabulate_truth
 
 PLANE = PlaneGrid(0.1, 0.1, 16, 16)
 

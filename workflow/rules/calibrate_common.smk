@@ -4,7 +4,7 @@
 
 from dataclasses import fields as _fields
 
-from facetsynth.virtual_rig import VirtualRig
+from facetsynth.truth.virtual_rig import VirtualRig
 
 
 def calibration_params(settings):

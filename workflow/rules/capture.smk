@@ -17,7 +17,7 @@ rule capture:
         "results/{sample}/logs/capture.log",
     benchmark:
         "results/{sample}/benchmarks/capture.tsv"
-    threads: 2  # frames in parallel (facetsynth.frames)
+    threads: 2  # frames in parallel (facetsynth.io.frames)
     resources:
         mem_mb=2000,
     params:

@@ -11,7 +11,7 @@ import yaml
 from snakemake.exceptions import WorkflowError
 from snakemake.utils import validate
 
-from facetsynth.errors import excerpt
+from facetsynth.io.errors import excerpt
 
 
 def scalars(value):

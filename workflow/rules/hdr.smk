@@ -12,7 +12,7 @@ rule hdr:
         "results/{sample}/logs/hdr.log",
     benchmark:
         "results/{sample}/benchmarks/hdr.tsv"
-    threads: 2  # frames in parallel (facetsynth.frames)
+    threads: 2  # frames in parallel (facetsynth.io.frames)
     resources:
         mem_mb=7000,  # make bench-scale: 6.5 GB peak at the paper's 800^2 (1176 x 784 camera)
     params:

@@ -13,7 +13,7 @@ rule rectify:
         "results/{sample}/logs/rectify.log",
     benchmark:
         "results/{sample}/benchmarks/rectify.tsv"
-    threads: 2  # frames in parallel (facetsynth.frames)
+    threads: 2  # frames in parallel (facetsynth.io.frames)
     resources:
         mem_mb=2000,
     params:

@@ -1,5 +1,5 @@
 # The report's figures (`snakemake --report report.html`): per sample and stage, drawn from the stages'
-# outputs by facetsynth.figures; captions in workflow/report/. The committed speed / accuracy and scale
+# outputs by facetsynth.app.figures; captions in workflow/report/. The committed speed / accuracy and scale
 # plots (docs/bench, `make bench`) join as copies under results/report/bench when the working copy has them
 # (not results/bench: make bench writes its own plots there).
 

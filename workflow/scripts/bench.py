@@ -3,7 +3,7 @@
 For every preset it runs the main Snakefile in its own working directory, results/bench/runs/{preset}/
 (links to Snakefile, workflow, config, resources, rig; its own samples.tsv), up to
 results/{scene}/validate/metrics.json of every scene, then writes results/bench/tradeoff.csv (one row
-per preset and scene: facetsynth.bench.COLUMNS) and results/bench/tradeoff.png (held-out PSNR against
+per preset and scene: facetsynth.app.bench.COLUMNS) and results/bench/tradeoff.png (held-out PSNR against
 the fit time, capture to params, with the Pareto front). A finished run is not repeated (Snakemake
 finds its outputs up to date), so an interrupted bench resumes.
 
@@ -19,7 +19,7 @@ import datetime
 import sys
 from pathlib import Path
 
-from facetsynth import bench
+from facetsynth.app import bench
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -6,10 +6,10 @@ workflow, config, resources, rig; its own samples.tsv with the captures' absolut
 results/{capture}/selfcheck/metrics.json of every capture of --samples, one capture after the other (so
 the stage times of one are not shared with another's jobs), with selfcheck={heldout_every: 8,
 relit_every: 1}: every 8th light (from the 4th) held out of the fit, every fitting light relit. Then
-prints and writes results/bench-real/table.md and table.csv (facetsynth.bench.REAL_COLUMNS): per capture,
+prints and writes results/bench-real/table.md and table.csv (facetsynth.app.bench.REAL_COLUMNS): per capture,
 relative L2 on the fitting / held-out lights of facetsynth, Lambert, PTM, HSH2, HSH3 (the selfcheck's
 baselines, same frames and pixels), facetsynth's fit time (wall seconds of the benchmark files of
-facetsynth.bench.FIT_STAGES: capture and hdr, i.e. reading and linearising the JPEGs, included; the csv
+facetsynth.app.bench.FIT_STAGES: capture and hdr, i.e. reading and linearising the JPEGs, included; the csv
 also has rectify..refine alone) and peak memory, and whether facetsynth <= HSH3 on both subsets. A
 finished run is not repeated (Snakemake finds its outputs up to date), so an interrupted bench resumes.
 
@@ -28,7 +28,7 @@ import datetime
 import sys
 from pathlib import Path
 
-from facetsynth import bench
+from facetsynth.app import bench
 
 REPO = Path(__file__).resolve().parents[2]
 SELFCHECK = "selfcheck={heldout_every: 8, relit_every: 1}"

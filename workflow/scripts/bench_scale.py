@@ -9,7 +9,7 @@ sample sheet), up to results/scale/svbrdf, in one job per stage (scatter.tiles 1
 their tiles on the job's 2 threads, with nothing to join). A
 finished run is not repeated (Snakemake finds its outputs up to date), so an interrupted bench resumes.
 
-Writes results/bench/scale.csv (facetsynth.bench.SCALE_COLUMNS: one row per run and stage, plus stage
+Writes results/bench/scale.csv (facetsynth.app.bench.SCALE_COLUMNS: one row per run and stage, plus stage
 "total", rectify through params, and stage "read_frames", the floor: reading the merged frames once) and
 scale.png (wall seconds against P and F per stage, log-log, with each stage's fitted exponent).
 
@@ -30,7 +30,7 @@ from pathlib import Path
 
 import yaml
 
-from facetsynth import bench
+from facetsynth.app import bench
 
 REPO = Path(__file__).resolve().parents[2]
 SCENE = REPO / "resources/scenes/paper-scale.yaml"
@@ -114,7 +114,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def recorded(root: Path, points: int, frames: int) -> list[dict]:
-    """The run's rows (:func:`facetsynth.bench.scale_rows` and its floor, :func:`facetsynth.bench.read_floor`),
+    """The run's rows (:func:`facetsynth.app.bench.scale_rows` and its floor, :func:`facetsynth.app.bench.read_floor`),
     measured once and kept in ``benchmarks/scale_rows.json`` beside its results: a later --collect-only must
     not measure the floor under other load, and needs no intermediates of a pruned run."""
     saved = root / "benchmarks" / "scale_rows.json"

@@ -1,7 +1,7 @@
 """What fitting from calibrated geometry costs in held-out accuracy (issue 16 item 4), measured.
 
 A virtual capture of a scene with a rig that has ``calibration_error`` records the rig's nominal geometry in
-its manifest while its frames were rendered with the true one (facetsynth.virtual_rig). This script fits the
+its manifest while its frames were rendered with the true one (facetsynth.truth.virtual_rig). This script fits the
 same frames three times and compares the held-out relative L2 (validate/metrics.json):
 
   nominal     the capture as made (its manifest's nominal camera, LED positions and intensities);
@@ -37,9 +37,9 @@ from pathlib import Path
 
 import numpy as np
 
-from facetsynth import manifest
+from facetsynth.capture import manifest
 from facetsynth.calibration.rigfile import RigCalibration
-from facetsynth.fileio import read_json, write_json
+from facetsynth.io.fileio import read_json, write_json
 from facetsynth.stages import validate
 
 

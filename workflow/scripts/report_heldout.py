@@ -1,6 +1,6 @@
 from pathlib import Path
 
-from facetsynth import figures
+from facetsynth.app import figures
 from facetsynth.stages.runner import run_stage
 
 i, w = snakemake.input, snakemake.wildcards

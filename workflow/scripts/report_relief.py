@@ -1,4 +1,4 @@
-from facetsynth import figures
+from facetsynth.app import figures
 from facetsynth.stages.runner import run_stage
 
 i = snakemake.input

@@ -1,4 +1,4 @@
-from facetsynth import figures
+from facetsynth.app import figures
 from facetsynth.stages.runner import run_stage
 
 run_stage(snakemake, figures.write_stencils, svbrdf=snakemake.input.svbrdf, models=snakemake.input.models,

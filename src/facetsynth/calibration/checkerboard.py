@@ -5,7 +5,7 @@ planar target gives a homography H = K [r1 r2 t] (the plane's z = 0), two constr
 the absolute conic; three or more views at different tilts fix K, and a non-linear refinement of all
 reprojection errors gives K, the lens distortion and each view's pose (OpenCV ``calibrateCamera``).
 The rig's pose is then the pose of one board lying on the sample plane at a known placement
-(``solvePnP`` with the calibrated K): X_cam = R X + t, the convention of :class:`facetsynth.camera.Camera`.
+(``solvePnP`` with the calibrated K): X_cam = R X + t, the convention of :class:`facetsynth.geometry.camera.Camera`.
 
 Corners: ``findChessboardCorners`` then ``cornerSubPix`` (the saddle point of the intensity, to a few
 hundredths of a pixel on a sharp board). A board has ``inner_corners`` = (columns, rows) corners where
@@ -20,7 +20,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..errors import InputError
+from ..io.errors import InputError
 
 # The lens models of calibrateCamera this module offers: "none" (an ideal pinhole: what rectify accepts),
 # "radial" (k1, k2), "full" (k1, k2, p1, p2, k3).

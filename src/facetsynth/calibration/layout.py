@@ -9,8 +9,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ..errors import InputError
-from ..fileio import read_frame, read_json
+from ..io.errors import InputError
+from ..io.fileio import read_frame, read_json
 
 REQUIRED = ("camera", "board", "intrinsics", "pose", "mirror", "white", "leds")
 

@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-from ..camera import Camera
+from ..geometry.camera import Camera
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..camera import Camera
+from ..geometry.camera import Camera
 
 
 def plane_points(camera: Camera) -> np.ndarray:

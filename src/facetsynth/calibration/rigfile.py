@@ -3,7 +3,7 @@
 A frame lit by LED ``led`` with the carriage ``steps`` motor steps from home has its light at
 home[led] + steps * step (a straight carriage: the same displacement per step for every LED) and the
 intensity intensity[led], in the radiance units of the capture manifest (I = rho cos L / r^2). The camera
-follows :class:`facetsynth.camera.Camera` (X_cam = R X + t, OpenCV's lens model).
+follows :class:`facetsynth.geometry.camera.Camera` (X_cam = R X + t, OpenCV's lens model).
 """
 
 from __future__ import annotations
@@ -14,10 +14,10 @@ from typing import Any
 
 import numpy as np
 
-from ..camera import Camera
-from ..errors import InputError
-from ..fileio import read_json, write_json
-from ..validation import validate
+from ..geometry.camera import Camera
+from ..io.errors import InputError
+from ..io.fileio import read_json, write_json
+from ..io.validation import validate
 
 
 @dataclass(frozen=True)

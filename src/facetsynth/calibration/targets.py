@@ -1,7 +1,7 @@
 """The virtual rig's calibration targets: images of checkerboards, a flat mirror and a white reference,
 rendered from the rig's TRUE geometry (the nominal description plus its ``calibration_error``, as
-:func:`facetsynth.virtual_rig.capture` renders frames) and exposed with the rig's sensor model
-(:func:`facetsynth.render.expose`), in the folder layout of :mod:`facetsynth.calibration` (``targets.json``).
+:func:`facetsynth.truth.virtual_rig.capture` renders frames) and exposed with the rig's sensor model
+(:func:`facetsynth.models.render.expose`), in the folder layout of :mod:`facetsynth.calibration` (``targets.json``).
 
 Rendering is ray casting through an ideal pinhole (the virtual camera has no lens distortion): each pixel
 is the box-filtered mean of s x s sub-pixel rays (antialiasing). A checkerboard is a plane in the camera's
@@ -22,10 +22,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..camera import Camera
-from ..fileio import atomic_dir, write_exr, write_json
-from ..render import expose
-from ..virtual_rig import VirtualRig
+from ..geometry.camera import Camera
+from ..io.fileio import atomic_dir, write_exr, write_json
+from ..models.render import expose
+from ..truth.virtual_rig import VirtualRig
 from .checkerboard import Board
 from .photometric import shading
 

@@ -6,8 +6,8 @@ import logging
 
 import numpy as np
 
-from ..fileio import read_rgb
-from ..metrics import relative_errors
+from ..io.fileio import read_rgb
+from .metrics import relative_errors
 
 log = logging.getLogger(__name__)
 

@@ -6,10 +6,10 @@ import logging
 
 import numpy as np
 
-from ..metrics import finite_or_none, spread_about_mean
-from ..scene import MaterialMaps, Scene
+from .metrics import finite_or_none, spread_about_mean
+from ..truth.scene import MaterialMaps, Scene
 from ..stages.common import RectifiedCapture
-from ..svbrdf import SVBRDF
+from ..models.svbrdf import SVBRDF
 from .truth import analytic_points, median_rel_error, truth_of
 
 log = logging.getLogger(__name__)
@@ -64,7 +64,7 @@ def ndf_spread(model: SVBRDF, truth: MaterialMaps, names: list[str], visible: np
     everywhere), up to ``max_points`` points (evenly strided) get their final
     normalised eq. 18 NDF on the model's grid (:meth:`SVBRDF.point_ndf`), and
     each its relative L2 about the points' mean NDF, solid-angle weighted over
-    the whole hemisphere grid (:func:`facetsynth.metrics.spread_about_mean`).
+    the whole hemisphere grid (:func:`facetsynth.evaluation.metrics.spread_about_mean`).
     Returns ({name: {"points", "median", "p90"}}, {name: why skipped}); a
     region whose frame turns (a polar frame: one material at many rotations,
     its NDFs should differ) is skipped and said so.

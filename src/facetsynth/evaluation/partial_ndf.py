@@ -6,11 +6,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import partial_ndf
-from ..coverage import LightFootprint
-from ..fileio import read_json
-from ..grid import DirectionGrid
-from ..tables import SupportTable
+from ..fit import partial_ndf
+from ..geometry.coverage import LightFootprint
+from ..io.fileio import read_json
+from ..geometry.grid import DirectionGrid
+from ..io.tables import SupportTable
 from ..stages.common import RectifiedCapture
 from .truth import median_or_none, scored_points, truth_of
 

@@ -7,13 +7,13 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import manifest
-from ..camera import Camera
-from ..fileio import read_rgb
-from ..metrics import marker_centroids, relative_errors
-from ..plane import PlaneGrid
-from ..render import radiance
-from ..scene import Scene
+from ..capture import manifest
+from ..geometry.camera import Camera
+from ..io.fileio import read_rgb
+from .metrics import marker_centroids, relative_errors
+from ..geometry.plane import PlaneGrid
+from ..models.render import radiance
+from ..truth.scene import Scene
 
 log = logging.getLogger(__name__)
 

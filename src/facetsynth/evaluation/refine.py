@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..microfacet import fresnel
+from ..models.microfacet import fresnel
 from ..stages.common import RectifiedCapture
-from ..svbrdf import SVBRDF
+from ..models.svbrdf import SVBRDF
 from .params import spread_scores
 from .truth import analytic_points, median_rel_error, truth_of
 

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..grid import DirectionGrid
+from ..geometry.grid import DirectionGrid
 from ..stages.common import RectifiedCapture, tiles
 from .truth import scored_points, truth_of
 

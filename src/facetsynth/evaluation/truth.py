@@ -18,9 +18,9 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InputError
-from ..fileio import read_yaml
-from ..scene import MaterialMaps, Scene
+from ..io.errors import InputError
+from ..io.fileio import read_yaml
+from ..truth.scene import MaterialMaps, Scene
 from ..stages.common import RectifiedCapture
 
 METRIC_POINTS = 1024   # the per-point NDFs are scored on every k-th visible point, k = visible // METRIC_POINTS

@@ -11,14 +11,14 @@ space is the sample plane's frame); the Mitsuba plugin turns each query into the
 
 from pathlib import Path
 
-from ..errors import InputError
+from ..io.errors import InputError
 
 
 def fitted_svbrdf(model_dir: str | Path, export: str):
-    """The fitted SVBRDF in ``model_dir`` (:func:`facetsynth.predict.load_model`); InputError naming its
+    """The fitted SVBRDF in ``model_dir`` (:func:`facetsynth.app.predict.load_model`); InputError naming its
     model.json for a Ward baseline folder, which ``export`` (the exporter's name) cannot write."""
-    from ..predict import load_model
-    from ..svbrdf import SVBRDF
+    from ..app.predict import load_model
+    from ..models.svbrdf import SVBRDF
     model = load_model(model_dir)
     if not isinstance(model, SVBRDF):
         raise InputError(Path(model_dir) / "model.json", f"a Ward baseline model; the {export} export takes a "

@@ -1,7 +1,7 @@
 """Portable export: the fitted SVBRDF as a glTF 2.0 material on a quad (issue 17 item 3).
 
 ``export_gltf(model_dir, out_dir)`` fits, per point of the sample-plane grid, the standard anisotropic GGX
-material of glTF 2.0 (:mod:`facetsynth.ggx`: Appendix B's metallic-roughness BRDF with
+material of glTF 2.0 (:mod:`facetsynth.models.ggx`: Appendix B's metallic-roughness BRDF with
 KHR_materials_anisotropy, KHR_materials_specular and KHR_materials_ior) to the SVBRDF of paper 002 eq. 6,
 and writes it as textures on a quad whose uv maps to the plane grid:
 
@@ -16,7 +16,7 @@ and writes it as textures on a quad whose uv maps to the plane grid:
 The fit (:func:`fit_material`):
 
 * NDF: an anisotropic GGX (alpha_x >= alpha_y, frame azimuth, scale c) per point by
-  :func:`facetsynth.ggx.fit_ggx_ndf` on the point's eq. 18 mixture before its eq. 13 turn (the turn is added
+  :func:`facetsynth.models.ggx.fit_ggx_ndf` on the point's eq. 18 mixture before its eq. 13 turn (the turn is added
   to the fitted azimuth exactly). Mixtures are fitted once per distinct weight vector, weights rounded to
   ``weight_quantum``. alpha_t = alpha_x, alpha_b = alpha_y give roughness = sqrt(alpha_y) and strength =
   sqrt((alpha_x - alpha_y) / (1 - alpha_y)); the anisotropy direction is the azimuth of alpha_x's axis.
@@ -47,7 +47,7 @@ back 0.32 deg off, 0.5 having no 8-bit code; :func:`round_trip_errors`' ``normal
 BRDF fitted per point is the one of eq. 6 in the point's shading frame (the model's tables are local), so
 the lobes are fitted unchanged and the normal texture turns them as the model's frames do, up to the twist
 about the tilted normal of a renderer's perturbed tangent (usually the tangent made orthogonal to the new
-normal, Gram-Schmidt, where facetsynth.normals turns the frame by the smallest rotation): 0 for normals
+normal, Gram-Schmidt, where facetsynth.fit.normals turns the frame by the smallest rotation): 0 for normals
 leaning along x or y only, at most about tilt^2 / 4 radians otherwise (0.44 deg at a 10 deg tilt, 4.1 deg
 at 30 deg), an anisotropic lobe's axis only.
 """
@@ -64,15 +64,15 @@ from typing import Any
 
 import numpy as np
 
-from ..colour import srgb_decode, srgb_encode
-from ..errors import InputError
-from ..fileio import atomic_path, read_json
-from ..ggx import (FIT_ALPHA_RANGE, GltfMaterial, _MomentDictionary, dielectric_f0, fit_ggx_ndf,
-                   roughness_strength)
-from ..microfacet import fresnel
-from ..normals import shading_frames
-from ..outputs import output_folder
-from ..plane import PlaneGrid
+from ..io.colour import srgb_decode, srgb_encode
+from ..io.errors import InputError
+from ..io.fileio import atomic_path, read_json
+from ..models.ggx import (FIT_ALPHA_RANGE, GltfMaterial, _MomentDictionary, dielectric_f0, fit_ggx_ndf,
+                          roughness_strength)
+from ..models.microfacet import fresnel
+from ..fit.normals import shading_frames
+from ..io.outputs import output_folder
+from ..geometry.plane import PlaneGrid
 
 log = logging.getLogger(__name__)
 
@@ -94,11 +94,11 @@ def _to_byte(x: np.ndarray) -> np.ndarray:
 
 @dataclass
 class NormalMappedMaterial(GltfMaterial):
-    """A :class:`facetsynth.ggx.GltfMaterial` with the per-point shading normals of its normalTexture.
+    """A :class:`facetsynth.models.ggx.GltfMaterial` with the per-point shading normals of its normalTexture.
 
     ``normal`` (P, 3) unit normals in the sample plane's frame (None: flat). As for
-    :class:`facetsynth.svbrdf.SVBRDF`, :meth:`eval_index` takes directions in each point's shading frame
-    and :meth:`frames` gives the rotations R (R n = +z, :func:`facetsynth.normals.shading_frames`) that take
+    :class:`facetsynth.models.svbrdf.SVBRDF`, :meth:`eval_index` takes directions in each point's shading frame
+    and :meth:`frames` gives the rotations R (R n = +z, :func:`facetsynth.fit.normals.shading_frames`) that take
     world directions there.
     """
 
@@ -357,7 +357,7 @@ def gltf_document(material: GltfMaterial, factors: dict[str, Any], bin_length: i
                              "frame": "glTF (X, Y, Z) = sample plane (x, z, -y) in metres; tangent +x, "
                                       "bitangent +y; uv (0, 0) = grid row 0 (+y edge), col 0 (-x edge); "
                                       "normalTexture (if any): tangent-space (X, Y, Z) = the plane's (x, y, z)",
-                             "model": "facetsynth.ggx (glTF 2.0 Appendix B + KHR_materials_anisotropy, "
+                             "model": "facetsynth.models.ggx (glTF 2.0 Appendix B + KHR_materials_anisotropy, "
                                       "_specular, _ior), fitted per point to paper 002 eq. 6"}}
     doc = pygltflib.GLTF2(
         asset=pygltflib.Asset(version="2.0", generator="facetsynth export gltf"),
@@ -551,7 +551,7 @@ def export_gltf(model_dir: str | Path, out_dir: str | Path, *, force: bool = Fal
                 iterations: int = 12, fresnel_cos_min: float = 0.5) -> dict[str, Any]:
     """Fit the portable glTF material to the SVBRDF in ``model_dir`` and write it to ``out_dir`` (module docstring).
 
-    The output folder follows :func:`facetsynth.outputs.output_folder` (never overlapping the model; a
+    The output folder follows :func:`facetsynth.io.outputs.output_folder` (never overlapping the model; a
     non-empty folder not made by this command only with ``force``; one writer at a time). The written file is
     read back, checked against the vendored glTF schema (:func:`validate_gltf`) and its textures against the
     fit before it is published (a failure publishes nothing). Returns a

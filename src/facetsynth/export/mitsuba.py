@@ -8,14 +8,14 @@ The exported folder is self-contained (numpy and Mitsuba 3 only, no facetsynth):
                         direction grids
     facetsynth_bsdf.py  the BSDF plugin (:mod:`facetsynth.export.mitsuba_bsdf`): a registered Python
                         ``mi.BSDF`` ("facetsynth_svbrdf") that evaluates rho exactly as
-                        :meth:`facetsynth.svbrdf.SVBRDF.eval` and importance-samples it; with shading
+                        :meth:`facetsynth.models.svbrdf.SVBRDF.eval` and importance-samples it; with shading
                         normals it turns Mitsuba's directions (the quad's frame, the sample plane's) into
-                        each point's shading frame itself (facetsynth.normals' R(x); its docstring says
+                        each point's shading frame itself (facetsynth.fit.normals' R(x); its docstring says
                         why not Mitsuba's ``normalmap`` BSDF), so the scene is the same with or without them
     scene.xml           Mitsuba 3 scene: the sample as a ``rectangle`` of the model's width x height on z = 0
                         (uv: u = x/W + 1/2, v = y/H + 1/2; shading frame s = +x, t = +y, n = +z: the sample
                         plane's), a perspective sensor, a point light, the ``direct`` integrator, a box
-                        filter and a float32 RGB ``hdrfilm`` (facetsynth.mitsuba_capture's conventions);
+                        filter and a float32 RGB ``hdrfilm`` (facetsynth.truth.mitsuba_capture's conventions);
                         camera, light, size and samples are ``$`` parameters with defaults
     render.py           renders a view (camera theta, phi, distance; or a capture manifest's camera and
                         frame light) with a point light and writes an EXR (:mod:`.mitsuba_render`)
@@ -33,11 +33,11 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InputError
-from ..fileio import atomic_path, write_json
-from ..mitsuba_capture import VARIANT
-from ..outputs import output_folder
-from ..svbrdf import SVBRDF
+from ..io.errors import InputError
+from ..io.fileio import atomic_path, write_json
+from ..truth.mitsuba_capture import VARIANT
+from ..io.outputs import output_folder
+from ..models.svbrdf import SVBRDF
 from . import fitted_svbrdf, mitsuba_bsdf, mitsuba_render
 
 COMMAND = "export mitsuba"
@@ -147,7 +147,7 @@ def _write_text(path: Path, text: str) -> None:
 def export_mitsuba(model_dir: str | Path, out_dir: str | Path, *, force: bool = False) -> dict[str, Any]:
     """Write the Mitsuba 3 export of the fitted SVBRDF in ``model_dir`` into ``out_dir`` (module docstring).
 
-    The output folder follows :func:`facetsynth.outputs.output_folder` (never the model folder nor inside it; a
+    The output folder follows :func:`facetsynth.io.outputs.output_folder` (never the model folder nor inside it; a
     non-empty folder not made by this command only with ``force``; one writer at a time); the files are
     published together when all are written, export.json last.
     Returns a summary: ``files`` (the paths written), the plane grid, representatives, plugin and variant.

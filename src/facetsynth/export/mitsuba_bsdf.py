@@ -2,7 +2,7 @@
 
 Written by ``facetsynth export mitsuba`` into the exported folder as
 ``facetsynth_bsdf.py``; it needs numpy and Mitsuba 3 only. It evaluates the
-fitted model itself, the same arithmetic as ``facetsynth.svbrdf.SVBRDF.eval_index``:
+fitted model itself, the same arithmetic as ``facetsynth.models.svbrdf.SVBRDF.eval_index``:
 
     rho(x, i, o) = kd(x)/pi + ks(x) D(x, h) F(c, eta(x)) / (4 A(x, i) A(x, o)),   c = |i.h|
 
@@ -20,10 +20,10 @@ n = +z); cell (row, col) = (floor((1 - v) rows), floor(u cols)).
 
 Shading normals (``normal`` in model.npz, when the model has them): the directions Mitsuba gives (in the
 quad's frame, the sample plane's) are turned into the point's shading frame, i_local = R(x) i with R(x) the
-smallest rotation taking the point's normal n(x) to +z (facetsynth.normals.shading_frames, the same
+smallest rotation taking the point's normal n(x) to +z (facetsynth.fit.normals.shading_frames, the same
 formula here), rho is evaluated there, the cosine is n(x) . i (the local z), and rho = 0 also where the
 light or the view is at or below the sample plane. So :meth:`TabulatedSVBRDF.eval` equals
-``facetsynth.svbrdf.SVBRDF.eval`` (world directions) and Mitsuba's pixel is rho (n(x) . i) L / r^2,
+``facetsynth.models.svbrdf.SVBRDF.eval`` (world directions) and Mitsuba's pixel is rho (n(x) . i) L / r^2,
 facetsynth's. The plugin turns the frame itself rather than being wrapped in Mitsuba's ``normalmap`` BSDF:
 ``normalmap`` builds its frame from dp/du by Gram-Schmidt (a different twist about n than R(x) when n
 leans along both x and y: up to about tilt^2 / 4 radians, 4.1 deg at a 30 deg tilt, by which an
@@ -69,7 +69,7 @@ VARIANTS = ("scalar_rgb",)
 
 
 def fresnel(c: float, eta: float) -> float:
-    """Unpolarised dielectric Fresnel reflectance (eq. 3), as facetsynth.microfacet.fresnel, for one c = |i.h|."""
+    """Unpolarised dielectric Fresnel reflectance (eq. 3), as facetsynth.models.microfacet.fresnel, for one c = |i.h|."""
     c = min(max(abs(c), 0.0), 1.0)
     d = (eta - 1.0) * (eta + 1.0)
     g2 = d + c * c
@@ -87,7 +87,7 @@ def fresnel(c: float, eta: float) -> float:
 
 
 class _Grid:
-    """A polar direction grid (facetsynth.grid.DirectionGrid): cell (t, p) spans theta in [t, t+1) pi/(2 n_theta),
+    """A polar direction grid (facetsynth.geometry.grid.DirectionGrid): cell (t, p) spans theta in [t, t+1) pi/(2 n_theta),
     phi in [p, p+1) 2 pi / n_phi from +x towards +y."""
 
     def __init__(self, n_theta: int, n_phi: int):
@@ -140,7 +140,7 @@ def _unit(x: float, y: float, z: float) -> tuple[float, float, float]:
 
 
 def _half(wi, wo) -> tuple[float, float, float]:
-    """h = (i + o) / |i + o|, the normal where i + o vanishes (facetsynth.microfacet.half_vector)."""
+    """h = (i + o) / |i + o|, the normal where i + o vanishes (facetsynth.models.microfacet.half_vector)."""
     sx, sy, sz = wi[0] + wo[0], wi[1] + wo[1], wi[2] + wo[2]
     ss = sx * sx + sy * sy + sz * sz
     if not ss > 2.2250738585072014e-308:
@@ -196,7 +196,7 @@ class TabulatedSVBRDF:
             self.turn = list(zip(np.cos(rotation).tolist(), np.sin(rotation).tolist()))
         else:
             self.turn = None
-        # shading frames: R (row by row) with R n = +z, facetsynth.normals.shading_frames' formula
+        # shading frames: R (row by row) with R n = +z, facetsynth.fit.normals.shading_frames' formula
         normal = np.asarray(data["normal"]) if "normal" in data else np.zeros(0)
         if normal.size:
             n = normal.astype(np.float64).reshape(p, 3)

@@ -8,10 +8,10 @@ whole (:mod:`facetsynth.rig.session` journals the frames).
 What is stored, by the file the camera delivers:
 
 - RAW (CR2, CR3, NEF, ARW, DNG, RAF, ORF, RW2, PEF ..., anything LibRaw opens): decoded with rawpy
-  (:func:`decode_raw`) to LINEAR RGB in [0, 1] and written as EXR (:func:`facetsynth.fileio.write_exr`,
+  (:func:`decode_raw`) to LINEAR RGB in [0, 1] and written as EXR (:func:`facetsynth.io.fileio.write_exr`,
   header ``exposure_time``), so that ``value = min(1, time * I)``: the manifest's ``saturation`` is 1.
 - 8-bit images (JPEG, 8-bit PNG/TIFF): kept byte for byte (8-bit, the camera's nonlinear tone curve); the
-  ``hdr`` stage recovers the camera response from the brackets (:mod:`facetsynth.response`, Debevec and
+  ``hdr`` stage recovers the camera response from the brackets (:mod:`facetsynth.capture.response`, Debevec and
   Malik 1997) and linearizes them.
 - Float images (EXR, float TIFF): written as EXR R, G, B as they are (taken as linear).
 - 16-bit integer images (TIFF, PNG): taken as LINEAR (as a raw converter's 16-bit linear export), scaled to
@@ -39,7 +39,7 @@ from typing import Any, Callable, Mapping, Protocol, Sequence, runtime_checkable
 
 import numpy as np
 
-from ..fileio import atomic_path, write_exr
+from ..io.fileio import atomic_path, write_exr
 
 log = logging.getLogger(__name__)
 

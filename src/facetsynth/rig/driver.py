@@ -28,17 +28,8 @@ from typing import Protocol, Self, TypeVar
 import serial
 
 from . import protocol
-from .protocol import (
-    BAUDRATE,
-    MAX_SEQUENCE,
-    ErrorCode,
-    ErrReply,
-    OkReply,
-    ProtocolError,
-    RigError,
-    RigInfo,
-    RigTimeoutError,
-)
+from .protocol import (BAUDRATE, MAX_SEQUENCE, ErrorCode, ErrReply, OkReply, ProtocolError, RigError, RigInfo,
+                       RigTimeoutError)
 
 __all__ = ["SerialLike", "RigController", "RigInfo", "RigError", "PositionError"]
 

@@ -29,21 +29,8 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 
-from .protocol import (
-    MAX_COMMAND_LENGTH,
-    MAX_REPLY_LENGTH,
-    PROTOCOL_VERSION,
-    ErrorCode,
-    RigInfo,
-    encode_line,
-    format_err,
-    format_identity,
-    format_ok,
-    parse_int,
-    split_sequence,
-    split_words,
-    with_sequence,
-)
+from .protocol import (MAX_COMMAND_LENGTH, MAX_REPLY_LENGTH, PROTOCOL_VERSION, ErrorCode, RigInfo, encode_line,
+                       format_err, format_identity, format_ok, parse_int, split_sequence, split_words, with_sequence)
 
 __all__ = ["ControllerState", "VirtualController", "PtyServer", "virtual_port"]
 

@@ -8,7 +8,7 @@ and each frame's light position ``home[led] + steps * step`` and intensity.
 
 What survives a fault (a controller that stops answering, a camera error, a power cut, Ctrl-C):
 
-- The capture is built in a staging folder beside its output (:func:`facetsynth.fileio.atomic_dir`),
+- The capture is built in a staging folder beside its output (:func:`facetsynth.io.fileio.atomic_dir`),
   moved into place only when every frame is there and the manifest written.
 - Every exposure file is written atomically (a temporary name, then a rename), so a file under its final
   name is whole.
@@ -34,10 +34,10 @@ from typing import Any, Callable
 import numpy as np
 from tqdm import tqdm
 
-from .. import manifest
-from ..errors import InputError
-from ..fileio import atomic_dir, read_yaml
-from ..validation import validate
+from ..capture import manifest
+from ..io.errors import InputError
+from ..io.fileio import atomic_dir, read_yaml
+from ..io.validation import validate
 from .driver import RigController
 from .protocol import RigError, RigInfo
 
@@ -110,7 +110,7 @@ def open_camera(rig: RigDescription, driver: RigController):
     """The description's camera backend; the virtual one sees the hardware through ``driver``."""
     desc = rig.desc["camera"]
     if desc["backend"] == "virtual":
-        from ..virtual_rig import VirtualCamera, VirtualRig
+        from ..truth.virtual_rig import VirtualCamera, VirtualRig
         for key in ("scene", "rig"):
             if key not in desc:
                 raise InputError(rig.path, f"camera backend 'virtual' needs '{key}' (camera.{key})")

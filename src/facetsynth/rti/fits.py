@@ -42,7 +42,7 @@ import math
 
 import numpy as np
 
-from ..metrics import relative_l2
+from ..evaluation.metrics import relative_l2
 
 __all__ = ["KINDS", "n_coefficients", "basis", "fit", "relight", "heldout_scores"]
 
@@ -179,7 +179,7 @@ def relight(kind: str, coefficients: np.ndarray, directions: np.ndarray) -> np.n
 
 
 def _as_images(values: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
-    """values (F, ...) as (F, H, W, C) for :func:`facetsynth.metrics.relative_l2`.
+    """values (F, ...) as (F, H, W, C) for :func:`facetsynth.evaluation.metrics.relative_l2`.
 
     With a mask (H, W), values must be (F, H, W) or (F, H, W, C); without one
     every entry after the frame axis is a pixel.
@@ -200,7 +200,7 @@ def heldout_scores(directions: np.ndarray, values: np.ndarray, heldout: np.ndarr
     False and relit (:func:`relight`, clipped at 0) at all F directions.
     Scores: ``||pred - truth||_2 / ||truth||_2`` over all pixels (only where
     ``mask`` (H, W) is True; values then (F, H, W[, C])), frames and channels
-    of the set (:func:`facetsynth.metrics.relative_l2`; NaN for an empty set
+    of the set (:func:`facetsynth.evaluation.metrics.relative_l2`; NaN for an empty set
     or an all-zero truth). Returns {kind: {"training": ..., "heldout": ...}}.
     """
     values = np.asarray(values)

@@ -23,7 +23,7 @@ manifest's ``assumed`` field, and each overridable in a side file ``<stem>.yaml`
   camera have no length in them); it labels the report's axes and sizes exports;
 * light intensities (``intensities``: one [r, g, b] per light, default white 1): irradiance at normal
   incidence, in units of the photos' linear values. Without them the stage ``separate`` estimates a factor
-  per light from the photos (:mod:`facetsynth.light_factors`): from the whole sample's diffuse part, or
+  per light from the photos (:mod:`facetsynth.fit.light_factors`): from the whole sample's diffuse part, or
   from a white or grey box the user names, ``reference: [col0, row0, col1, row1]`` (photo pixels; the
   manifest's ``reference_region``, on the plane);
 * the photos' transfer function (``transfer``, default ``srgb``: JPEG and 8-bit PNG are sRGB-encoded
@@ -43,9 +43,9 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InputError
-from ..fileio import read_yaml
-from .. import transfer
+from ..io.errors import InputError
+from ..io.fileio import read_yaml
+from ..capture import transfer
 
 HORIZON_TOLERANCE = 0.05
 """Lights calibrated this far below the horizon (z of the unit direction, about 3 deg) are taken as
@@ -168,7 +168,7 @@ def options(path: str | Path, n_lights: int) -> dict[str, Any]:
 def _plane_box(cam: dict[str, Any], box: list[int]) -> dict[str, list[float]]:
     """A box of photo pixels [col0, row0, col1, row1] (pixel edges: col0 - 0.5 .. col1 - 0.5) as the box it covers
     on the sample plane, {"x": [x0, x1], "y": [y0, y1]} in metres (the camera's plane homography, inverted)."""
-    from ..manifest import camera
+    from ..capture.manifest import camera
     H = np.linalg.inv(camera({"camera": cam}).plane_homography())
     corners = np.array([[box[0] - 0.5, box[1] - 0.5, 1.0], [box[2] - 0.5, box[3] - 0.5, 1.0]]) @ H.T
     xy = corners[:, :2] / corners[:, 2:]

@@ -1,6 +1,6 @@
 """Stage ``baseline_ward``: per-point anisotropic Ward fitted by LM to the rectified data (paper 002 Fig. 10).
 
-Each point is fitted independently; :func:`facetsynth.ward.fit_points` fits a tile of them at once. The
+Each point is fitted independently; :func:`facetsynth.models.ward.fit_points` fits a tile of them at once. The
 config knob ``baseline.max_nfev`` (argument ``max_nfev``) caps the LM iterations (trial steps) per start and
 point; it kept its name from the scipy fit it replaced, where it capped function evaluations."""
 
@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from ..fileio import atomic_path, read_exr, write_json
-from ..ward import WardSVBRDF, fit_points
+from ..io.fileio import atomic_path, read_exr, write_json
+from ..models.ward import WardSVBRDF, fit_points
 from .common import TILE_POINTS, RectifiedCapture, RuleFiles, StageSettings, part_points, part_records
 
 log = logging.getLogger(__name__)
@@ -132,7 +132,7 @@ def _write(capture: RectifiedCapture, kd_path, colour, fitted: dict, specular, m
     ks, ax, ay, phi = fitted["ks"], fitted["alpha_x"], fitted["alpha_y"], fitted["phi"]
     failed = int(np.sum(fitted["failed"]))
     WardSVBRDF(capture.grid, kd, ks[:, None] * col, ax, ay, phi,
-               info={"fit": "Levenberg-Marquardt per point (facetsynth.ward.fit_points: batched over tiles, "
+               info={"fit": "Levenberg-Marquardt per point (facetsynth.models.ward.fit_points: batched over tiles, "
                             "analytic Jacobian, two starts)",
                      "source": str(specular)}).save(model_out)
     write_json(metrics_out, {"points": n, "fitted_points": int(capture.visible.sum()),

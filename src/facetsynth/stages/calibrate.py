@@ -13,9 +13,9 @@ from ..calibration import checkerboard, mirror, photometric
 from ..calibration.layout import load_layout, read_image
 from ..calibration.rigfile import RigCalibration
 from ..calibration.targets import write_targets
-from ..camera import Camera
-from ..errors import InputError
-from ..virtual_rig import VirtualRig
+from ..geometry.camera import Camera
+from ..io.errors import InputError
+from ..truth.virtual_rig import VirtualRig
 from .common import StageSettings
 
 log = logging.getLogger(__name__)

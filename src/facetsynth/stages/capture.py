@@ -9,16 +9,17 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import manifest, plausibility, virtual_rig
-from ..rectify import sample_pixels
-from ..errors import InputError
+from ..capture import manifest, plausibility
+from ..truth import virtual_rig
+from ..capture.rectify import sample_pixels
+from ..io.errors import InputError
 from ..evaluation.truth import check_truth_scene
-from ..fileio import atomic_dir, read_exposure
-from ..frames import map_frames
-from ..hdr import SensorModel
+from ..io.fileio import atomic_dir, read_exposure
+from ..io.frames import map_frames
+from ..capture.hdr import SensorModel
 from ..rig import session
 from ..rig.session import RigDescription
-from ..virtual_rig import VirtualRig
+from ..truth.virtual_rig import VirtualRig
 from .common import RuleFiles, StageSettings
 
 log = logging.getLogger(__name__)
@@ -82,8 +83,8 @@ def check_capture(path: str | Path) -> dict:
 def inspect_capture(path: str | Path) -> tuple[dict, list[str]]:
     """Validate a capture folder as the pipeline will read it: the loaded manifest and the warnings.
 
-    The manifest goes through :func:`facetsynth.manifest.load` (schema and meaning); every exposure's
-    pixels are read with the reader the ``hdr`` stage uses (:func:`facetsynth.fileio.read_exposure`: an
+    The manifest goes through :func:`facetsynth.capture.manifest.load` (schema and meaning); every exposure's
+    pixels are read with the reader the ``hdr`` stage uses (:func:`facetsynth.io.fileio.read_exposure`: an
     EXR's values, an 8-bit image's codes), on threads. Errors (InputError, one line naming the file): a
     file that is not a readable EXR or 8-bit image with R, G, B of the camera's size; a NaN or Inf pixel (``hdr`` refuses them); every frame dark (nothing
     measured). Warnings, as the data still merge and fit: negative values (``hdr`` clips them to 0; a
@@ -91,7 +92,7 @@ def inspect_capture(path: str | Path) -> tuple[dict, list[str]]:
     frames (a light that did not fire, or lights nothing the camera sees; the other frames still fit).
     Dark is as ``hdr`` has it: no value of any exposure above the sensor's noise floor (3 read-noise
     sigmas of the manifest's ``noise``, the ``hdr`` default; 0 for noise-free data).
-    Plausibility (:mod:`facetsynth.plausibility`, issue 32; ``hdr`` checks the same): the sample's size
+    Plausibility (:mod:`facetsynth.capture.plausibility`, issue 32; ``hdr`` checks the same): the sample's size
     against the camera's view of it and the lights' distances against the sample, before any pixel is
     read; a virtual capture's ``truth/scene``; clipping per frame and over the capture.
     """

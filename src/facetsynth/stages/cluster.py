@@ -1,9 +1,9 @@
 """Stage ``cluster``: k-means representatives and eq. 18 interpolation weights (paper 002 sec. 5.3).
 
-Points are compared on a coarse grid (:func:`facetsynth.cluster.coarse`),
+Points are compared on a coarse grid (:func:`facetsynth.fit.cluster.coarse`),
 where the phase of the lights against a glossy lobe averages out; each
 representative's partial NDF is then fitted from the pooled samples of its
-cluster's members (:func:`facetsynth.partial_ndf.pooled_fit`), which sample the
+cluster's members (:func:`facetsynth.fit.partial_ndf.pooled_fit`), which sample the
 shared NDF far more densely than the lights sample any one point.
 """
 
@@ -17,13 +17,13 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from .. import cluster
-from .. import partial_ndf
-from ..fileio import NpyRows, read_exr, read_json, write_json, write_npy
-from ..tables import SupportTable
-from ..frames import imap
-from ..grid import DirectionGrid
-from ..partial_ndf import relative_l2
+from ..fit import cluster
+from ..fit import partial_ndf
+from ..io.fileio import NpyRows, read_exr, read_json, write_json, write_npy
+from ..io.tables import SupportTable
+from ..io.frames import imap
+from ..geometry.grid import DirectionGrid
+from ..fit.partial_ndf import relative_l2
 from .common import RectifiedCapture, RuleFiles, StageSettings, tiles
 
 log = logging.getLogger(__name__)
@@ -76,7 +76,7 @@ class Settings(StageSettings):
     ridge: float = 1e-3              # Tikhonov term of the eq. 18 least squares
     n_init: int = 3                  # k-means restarts
     seed: int = 0                    # config seed: k-means and the k scan
-    shadowing: bool | str = "constrained"  # config partial_ndf: S of eq. 5, :func:`facetsynth.partial_ndf.shadowing_method`
+    shadowing: bool | str = "constrained"  # config partial_ndf: S of eq. 5, :func:`facetsynth.fit.partial_ndf.shadowing_method`
     grazing_deg: float = 80.0        # config partial_ndf: light directions steeper than this are excluded
     tolerance: float = 1e-3          # config partial_ndf: eq. 11 stops when D changes by less than this
     max_iterations: int = 30         # config partial_ndf
@@ -87,13 +87,13 @@ class Points:
     """The visible points' partial NDFs, full (memory-mapped) and on the coarse grid they are compared on."""
     capture: RectifiedCapture
     grid: DirectionGrid             # the partial NDFs' grid
-    d_all: object                   # (P, T, F) D of every point (:class:`facetsynth.tables.SupportRows`)
+    d_all: object                   # (P, T, F) D of every point (:class:`facetsynth.io.tables.SupportRows`)
     w_all: object                   # (P, T, F) W
     visible: np.ndarray             # (N,) the visible points
     d: np.ndarray                   # (N, t, f) their D on the coarse grid
     w: np.ndarray                   # (N, t, f) their W on it
     cgrid: DirectionGrid            # the coarse grid
-    domain: np.ndarray | None       # (t, f) the cells every point sees (:func:`facetsynth.cluster.common_domain`)
+    domain: np.ndarray | None       # (t, f) the cells every point sees (:func:`facetsynth.fit.cluster.common_domain`)
     kd: np.ndarray | None           # (N, 3) their diffuse albedo (None: not compared by it)
 
 
@@ -126,7 +126,7 @@ def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threa
     weights, the representatives' partial NDFs, the points' turns and cluster/metrics.json.
 
     The number of representatives (:func:`representative_count`): ``representatives`` "auto" chooses it
-    from the data (:func:`facetsynth.cluster.choose_k`: the smallest k on a geometric ladder from
+    from the data (:func:`facetsynth.fit.cluster.choose_k`: the smallest k on a geometric ladder from
     ``min_representatives`` to ``max_representatives`` whose k-means distortion falls below ``distortion``
     of the total variance, scanned on ``scan_points`` points); an integer >= 1 fixes it; a number in (0, 1)
     is a fraction of the visible points (the paper's 1 %, at least ``min_representatives``). ``spread``: a
@@ -136,7 +136,7 @@ def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threa
     ``separate``; eqs. 11 and 5 as in ``partial_ndf``: ``shadowing``, ``grazing_deg``, ``tolerance``,
     ``max_iterations``); without the samples (None) it is the representative's own partial NDF.
     ``inputs.kd`` (``separate``'s map): points are compared by their diffuse albedo too
-    (:func:`facetsynth.cluster.with_albedo`), so that two materials of one lobe shape stay two (eta and
+    (:func:`facetsynth.fit.cluster.with_albedo`), so that two materials of one lobe shape stay two (eta and
     isotropy are decided per material by kd). The partial NDFs are read and coarsened on ``threads``
     threads.
     """
@@ -222,7 +222,7 @@ def kmeans_clusters(points: Points, settings: Settings) -> tuple[Count, cluster.
 
 def representative_count(feats: np.ndarray, n_visible: int, settings: Settings) -> Count:
     """How many representatives, from ``settings.representatives``: "auto" (the k scan,
-    :func:`facetsynth.cluster.choose_k`), a count >= 1, or a fraction in (0, 1) of the ``n_visible`` points
+    :func:`facetsynth.fit.cluster.choose_k`), a count >= 1, or a fraction in (0, 1) of the ``n_visible`` points
     (at least ``min_representatives``); a number given as a string (--config) is read as one."""
     representatives = settings.representatives
     if isinstance(representatives, str) and representatives.strip() != "auto":
@@ -313,7 +313,7 @@ def fit_metrics(points: Points, fitted: Fit, settings: Settings) -> dict:
 
 
 def coarse_points(d_all, w_all, rows: np.ndarray, grid: DirectionGrid, tile: int = 4096, threads: int = 1):
-    """:func:`facetsynth.cluster.coarse` of the points ``rows`` of the memory-mapped (P, T, F) tables, a tile
+    """:func:`facetsynth.fit.cluster.coarse` of the points ``rows`` of the memory-mapped (P, T, F) tables, a tile
     at a time on ``threads`` threads: memory holds the coarse tables (16 x smaller on the demo's grid), never
     the full ones."""
     blocks = list(imap(lambda t: cluster.coarse(d_all[rows[t]], w_all[rows[t]], grid), list(tiles(rows.size, tile)),
@@ -331,10 +331,10 @@ class Pooled:
 def pooled_representatives(capture: RectifiedCapture, visible: np.ndarray, result, d_all, w_all, specular, valid,
                            grid: DirectionGrid, settings: Settings) -> Pooled:
     """Every cluster's partial NDF from up to POOL_MEMBERS of its members' eq. 8 samples
-    (:func:`facetsynth.partial_ndf.pooled_fit`: ``settings.shadowing``, ``grazing_deg``, ``tolerance``,
+    (:func:`facetsynth.fit.partial_ndf.pooled_fit`: ``settings.shadowing``, ``grazing_deg``, ``tolerance``,
     ``max_iterations``), for its representative's view and, where the cluster turns
     across the sample (TURN_GAIN, TURN_SPREAD), in its frame (each member's turn against it,
-    :func:`facetsynth.cluster.relative_rotation`, undone; elsewhere the turns are noise, and undoing
+    :func:`facetsynth.fit.cluster.relative_rotation`, undone; elsewhere the turns are noise, and undoing
     them would blur the lobe)."""
     views = capture.view_directions(True)
     ndf = np.zeros((len(result.representatives),) + grid.shape)
@@ -370,7 +370,7 @@ class Turns:
 def point_turns(d_all, w_all, visible: np.ndarray, labels: np.ndarray, pooled: Pooled, grid: DirectionGrid,
                 batch: int = 512) -> Turns:
     """Each visible point's turn against its cluster's pooled partial NDF (eq. 13,
-    :func:`facetsynth.cluster.relative_rotation`), and which clusters are one material turning across the
+    :func:`facetsynth.fit.cluster.relative_rotation`), and which clusters are one material turning across the
     sample (TURN_GAIN, TURN_SPREAD): for those a representative and a per-point turn replace eq. 18's
     mixture of representatives at other turns, which showed as wedges on the demo's turned copper.
     Whether a cluster turns, its spread and gain, are measured on up to POOL_MEMBERS of its members

@@ -10,12 +10,12 @@ from typing import ClassVar
 
 import numpy as np
 
-from .. import manifest
-from ..errors import InputError
-from ..fileio import read_json
-from ..normals import shading_frames, to_local
-from ..plane import PlaneGrid
-from ..render import light_geometry, towards
+from ..capture import manifest
+from ..io.errors import InputError
+from ..io.fileio import read_json
+from ..fit.normals import shading_frames, to_local
+from ..geometry.plane import PlaneGrid
+from ..models.render import light_geometry, towards
 
 TILE_POINTS = 256  # points per tile: bounds the memory of every per-point stage
 
@@ -58,7 +58,7 @@ def _path(value):
 @dataclass(frozen=True)
 class RectifiedCapture:
     """``rectify/geometry.json``: the grid, the points, the lights, the view; and ``separate/geometry.json``, the
-    same with each point's shading normal (:mod:`facetsynth.normals`). With normals, every direction the
+    same with each point's shading normal (:mod:`facetsynth.fit.normals`). With normals, every direction the
     stages get (:meth:`light_directions`, :meth:`view_directions`) is in the point's shading frame, so that
     each stage's eq. 6 is the point's own, and i.z is n(x) . i."""
 
@@ -107,7 +107,7 @@ class RectifiedCapture:
         return o if frames is None else to_local(frames, o)
 
     def frames(self, index) -> np.ndarray | None:
-        """The shading frames (p, 3, 3) of the points ``index`` (:func:`facetsynth.normals.shading_frames`), None
+        """The shading frames (p, 3, 3) of the points ``index`` (:func:`facetsynth.fit.normals.shading_frames`), None
         without normals, or when every normal is +z (a flat sample's: the frames would be the identity, exactly,
         and every stage would turn every direction by it): the world's directions of a point's grid are R^T d."""
         return None if not self.tilted else shading_frames(self.normals[index])

@@ -2,7 +2,7 @@
 
 Writes the glTF folder (:func:`facetsynth.export.gltf.export_gltf`) and, for a sample with held-out truth
 (``validate/heldout/{view}``), renders every held-out frame with the portable material as read back from
-the written files (8-bit textures, what a renderer gets) through :class:`facetsynth.predict.FrameRenderer`,
+the written files (8-bit textures, what a renderer gets) through :class:`facetsynth.app.predict.FrameRenderer`,
 and scores it with the validate stage's own scoring (:func:`facetsynth.stages.validate.trusted_scores`,
 same sample mask, same diffuse truth), beside the full SVBRDF's scores from ``validate/metrics.json``.
 """
@@ -17,11 +17,11 @@ from typing import Any
 
 import numpy as np
 
-from .. import manifest
+from ..capture import manifest
 from ..export.gltf import GLTF_NAME, export_gltf, read_gltf
-from ..fileio import read_json, read_rgb, write_json
-from ..predict import FrameRenderer
-from ..scene import Scene
+from ..io.fileio import read_json, read_rgb, write_json
+from ..app.predict import FrameRenderer
+from ..truth.scene import Scene
 from .common import RuleFiles, StageSettings
 from .validate import diffuse_truth, supersample, true_rig, trusted_scores, view_mean
 
@@ -86,7 +86,7 @@ def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threa
         "fit": summary["fit"], "round_trip": summary["round_trip"],
         "normalisation": "heldout_rel_l2 and heldout_specular_rel_l2 as validate/metrics.json (same frames, sample "
                          "mask and diffuse truth); portable = the material read back from the written glTF "
-                         "(8-bit textures), rendered by facetsynth.ggx; full = validate/metrics.json's; "
+                         "(8-bit textures), rendered by facetsynth.models.ggx; full = validate/metrics.json's; "
                          "loss = portable - full", "views": {}}
     if inputs.heldout:
         metrics.update(heldout_scores(inputs, Path(outputs.gltf) / GLTF_NAME, settings.views))

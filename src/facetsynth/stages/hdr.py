@@ -1,15 +1,15 @@
 """Stage ``hdr``: merge each frame's exposures into one scene-linear EXR (paper 002 sec. 4).
 
 Exposures are EXR (linear exposure values) or, all of them, 8-bit images (JPEG, PNG, TIFF, told by the
-pixel format: :func:`facetsynth.fileio.exposure_bits`): for those the camera response is recovered from
-the capture's brackets (Debevec and Malik 1997, :mod:`facetsynth.response`), the codes linearized with it
+pixel format: :func:`facetsynth.io.fileio.exposure_bits`): for those the camera response is recovered from
+the capture's brackets (Debevec and Malik 1997, :mod:`facetsynth.capture.response`), the codes linearized with it
 and merged with its 8-bit sensor model (code 255 clipped, code 0 the noise floor, quantisation noise); the
 manifest's ``saturation`` and ``noise`` are then not used (the linear scale puts clipping at 1).
 
 A manifest that declares the ``transfer`` of its 8-bit exposures (sRGB, linear or a gamma,
-:mod:`facetsynth.transfer`) and optionally a ``black_level`` replaces the recovery: the codes are decoded
+:mod:`facetsynth.capture.transfer`) and optionally a ``black_level`` replaces the recovery: the codes are decoded
 with it, the black level subtracted (``max(0, L - b) / (1 - b)``: code 255 stays 1), and merged with the
-same sensor model (:meth:`facetsynth.response.Response.from_transfer`), so one exposure per frame is
+same sensor model (:meth:`facetsynth.capture.response.Response.from_transfer`), so one exposure per frame is
 enough (a light dome's one sRGB JPEG per light). A channel at code 255 is clipped: a pixel where every
 exposure clipped is flagged ``saturated`` like a clipped HDR value. ``transfer`` on EXR exposures, and a
 ``black_level`` without a ``transfer``, are InputErrors.
@@ -27,17 +27,17 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .. import manifest, plausibility
-from ..rectify import sample_pixels
-from ..errors import InputError
+from ..capture import manifest, plausibility
+from ..capture.rectify import sample_pixels
+from ..io.errors import InputError
 from ..evaluation.hdr import frame_truth_errors, truth_scores
 from ..evaluation.truth import check_truth_scene
-from ..fileio import atomic_dir, exposure_bits, file_key, read_codes, read_exr, read_rgb, write_exr, write_json
-from ..frames import map_frames
-from ..hdr import SensorModel, merge_exposures
-from ..lightplane import LightTriangulation
-from ..response import Response, ResponseSettings, recover_response
-from ..transfer import Transfer, parse
+from ..io.fileio import atomic_dir, exposure_bits, file_key, read_codes, read_exr, read_rgb, write_exr, write_json
+from ..io.frames import map_frames
+from ..capture.hdr import SensorModel, merge_exposures
+from ..geometry.lightplane import LightTriangulation
+from ..capture.response import Response, ResponseSettings, recover_response
+from ..capture.transfer import Transfer, parse
 from .common import RuleFiles, StageSettings, flag_degenerate
 
 log = logging.getLogger(__name__)
@@ -107,7 +107,7 @@ def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threa
 # ---------------------------------------------------------------------------- load
 def load(inputs: Inputs, settings: Settings, response_settings: ResponseSettings = ResponseSettings()) -> Capture:
     """The capture's manifest, refused here if the method cannot use it (:func:`_check_lights`; the plausibility
-    checks of ``facetsynth check``, :mod:`facetsynth.plausibility`, for a capture that skipped it: refused
+    checks of ``facetsynth check``, :mod:`facetsynth.capture.plausibility`, for a capture that skipped it: refused
     before it becomes a model, its warnings kept for the metrics), and the sensor model it is merged with
     (:func:`sensor_model`)."""
     capture = manifest.load(inputs.capture)
@@ -151,7 +151,7 @@ def sensor_model(capture: dict, path: Path, shape: tuple[int, int, int], setting
 # ---------------------------------------------------------------------------- merge
 def merge(capture: Capture, frames_dir: Path, threads: int = 1) -> tuple[list[Merged], list[str]]:
     """Every frame merged (:func:`merge_frame`) on ``threads`` threads into ``frames_dir``, published whole
-    (:func:`facetsynth.fileio.atomic_dir`: an interrupted run resumes in its staging folder, to the same
+    (:func:`facetsynth.io.fileio.atomic_dir`: an interrupted run resumes in its staging folder, to the same
     bytes); returns the frames' figures and the capture's warnings, those of :func:`load` and of the clipping.
     A capture whose every frame is dark, or clipped, is an InputError, and nothing is published."""
     key = {"capture": file_key(capture.path), "sensor": asdict(capture.sensor)}
@@ -261,7 +261,7 @@ def _response_metrics(capture: Capture) -> dict:
 # ---------------------------------------------------------------------------- helpers
 def _check_lights(capture: dict, manifest_path: Path) -> None:
     """The method interpolates each point's samples over one triangulation of the lights in their plane
-    (:class:`facetsynth.lightplane.LightTriangulation`, resample): lights that span no area (fewer than 3,
+    (:class:`facetsynth.geometry.lightplane.LightTriangulation`, resample): lights that span no area (fewer than 3,
     or all on one line) are an error here, before any frame is merged."""
     try:
         LightTriangulation.from_lights(manifest.lights(capture["frames"]))
@@ -273,7 +273,7 @@ def _check_lights(capture: dict, manifest_path: Path) -> None:
 class Merged(NamedTuple):
     """One merged frame's figures: its saturated pixel count, its exposures' negative values, its relative
     errors against the truth (None without truth, :func:`facetsynth.evaluation.hdr.frame_truth_errors`), whether it is dark, and its
-    saturated pixels among those that see the sample (:func:`facetsynth.plausibility.check_clipping`)."""
+    saturated pixels among those that see the sample (:func:`facetsynth.capture.plausibility.check_clipping`)."""
     saturated: int
     negatives: "Negatives"
     errors: np.ndarray | None
@@ -286,7 +286,7 @@ class Negatives:
     """Exposure values below 0 (of a frame, or of the capture): how many, and the first file holding one.
 
     A sensor's read noise around its black level makes dark values negative: they are noise, not
-    signal, so the merge keeps clipping them (:func:`facetsynth.hdr.merge_exposures`), but says so.
+    signal, so the merge keeps clipping them (:func:`facetsynth.capture.hdr.merge_exposures`), but says so.
     """
     count: int = 0
     first_file: str | None = None
@@ -367,7 +367,7 @@ RESPONSE_FRAMES = 8
 def _recover_response(capture: dict, shape: tuple[int, ...], manifest_path: Path,
                       settings: ResponseSettings) -> Response:
     """The camera response from the brackets of up to RESPONSE_FRAMES frames taken with the capture's most
-    common exposure times (:func:`facetsynth.response.recover_response`)."""
+    common exposure times (:func:`facetsynth.capture.response.recover_response`)."""
     brackets = Counter(tuple(e["time"] for e in f["exposures"]) for f in capture["frames"])
     times = max(brackets, key=brackets.get)
     frames = [f for f in capture["frames"] if tuple(e["time"] for e in f["exposures"]) == times]

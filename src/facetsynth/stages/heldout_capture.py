@@ -13,8 +13,8 @@ import logging
 from dataclasses import dataclass
 from pathlib import Path
 
-from .. import virtual_rig
-from ..virtual_rig import VirtualRig
+from ..truth import virtual_rig
+from ..truth.virtual_rig import VirtualRig
 from .common import RuleFiles, StageSettings
 from .validate import heldout_rig
 

@@ -5,7 +5,7 @@ NDF's scale), the eq. 18 neighbours and weights of ``cluster``, kd of
 ``separate``, the per-point specular samples (``separate/specular.npy``,
 ``valid.npy``) whose grazing part partial NDF fitting excluded, the specular
 colour of ``resample`` and the rectified geometry. Output: the folder
-described in :mod:`facetsynth.svbrdf` and ``params/metrics.json``: the eq. 19
+described in :mod:`facetsynth.models.svbrdf` and ``params/metrics.json``: the eq. 19
 fit's figures per material and, for a virtual capture, eta, ks and the NDF
 spread against the truth (:func:`facetsynth.evaluation.params.truth_scores`, apart from the fit, on the
 written model).
@@ -19,16 +19,16 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import params
-from ..cluster import material_groups
-from ..errors import InputError
-from ..fileio import atomic_dir, read_exr, read_json, read_npy, write_json
-from ..frames import map_frames
-from ..grid import DirectionGrid
-from ..metrics import finite_or_none
-from ..microfacet import fresnel, half_vector
-from ..svbrdf import SVBRDF
-from ..synthesis import SUPPORT
+from ..fit import params
+from ..fit.cluster import material_groups
+from ..io.errors import InputError
+from ..io.fileio import atomic_dir, read_exr, read_json, read_npy, write_json
+from ..io.frames import map_frames
+from ..geometry.grid import DirectionGrid
+from ..evaluation.metrics import finite_or_none
+from ..models.microfacet import fresnel, half_vector
+from ..models.svbrdf import SVBRDF
+from ..fit.synthesis import SUPPORT
 from ..evaluation.params import truth_scores
 from .common import RectifiedCapture, RuleFiles, StageSettings, tiles
 
@@ -163,7 +163,7 @@ def fit_eta(model: SVBRDF, w18: np.ndarray, samples: dict[str, np.ndarray], mate
     the samples of the even and of the odd points, and eta counts as
     unconstrained (default kept) when the halves disagree by more than
     ``max_split_difference``. Each material also gets the 95 % profile-likelihood
-    interval of eta (:func:`facetsynth.params.eta_profile`, its independent
+    interval of eta (:func:`facetsynth.fit.params.eta_profile`, its independent
     units the material's representatives (``interval_unit`` "representative"),
     points ("point") or samples ("sample")) and ``eta_identifiable`` (width <
     ``max_eta_interval``, closed inside the bounds). An interval open at both
@@ -388,7 +388,7 @@ def fit_metrics(model: SVBRDF, samples: dict[str, np.ndarray], records: list[dic
 
 
 def write(model: SVBRDF, inputs: Inputs, outputs: Outputs) -> None:
-    """The SVBRDF folder (:mod:`facetsynth.svbrdf`), whole or not at all."""
+    """The SVBRDF folder (:mod:`facetsynth.models.svbrdf`), whole or not at all."""
     with atomic_dir(outputs.svbrdf) as staging:
         model.save(staging, provenance={"ndf": str(inputs.ndf), "neighbours": str(inputs.neighbours),
                                         "geometry": str(inputs.geometry)})

@@ -8,12 +8,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import partial_ndf
-from ..coverage import LightFootprint
-from ..fileio import atomic_path, read_json, write_json
-from ..frames import imap
-from ..grid import DirectionGrid
-from ..tables import SupportTable, join_tables, support_writer
+from ..fit import partial_ndf
+from ..geometry.coverage import LightFootprint
+from ..io.fileio import atomic_path, read_json, write_json
+from ..io.frames import imap
+from ..geometry.grid import DirectionGrid
+from ..io.tables import SupportTable, join_tables, support_writer
 from ..evaluation.partial_ndf import partial_ndf_errors
 from ..evaluation.truth import median_or_none, scored_points, truth_of
 from .common import TILE_POINTS, RectifiedCapture, RuleFiles, StageSettings, part_points, part_records, tiles
@@ -45,7 +45,7 @@ class Outputs(RuleFiles):
 class Settings(StageSettings):
     """The stage's knobs: config ``partial_ndf`` (workflow/schemas/config.schema.yaml)."""
     per_point_view: bool = True           # o(x) per point, or the paper's view at the sample centre
-    shadowing: bool | str = "constrained"  # S of eq. 5: :func:`facetsynth.partial_ndf.shadowing_method`
+    shadowing: bool | str = "constrained"  # S of eq. 5: :func:`facetsynth.fit.partial_ndf.shadowing_method`
     grazing_deg: float = 80.0             # light directions steeper than this are excluded
     tolerance: float = 1e-3               # stop when D changes by less than this (relative)
     max_iterations: int = 30
@@ -87,11 +87,11 @@ def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threa
 def run_whole(geometry: str | Path, slice_path: str | Path, grid_path: str | Path, ndf_out: str | Path,
               metrics_out: str | Path, settings: Settings = Settings(), threads: int = 1) -> None:
     """The whole capture in one job (``scatter.tiles`` 1): fit every point's partial NDF, in tiles of points over
-    memory-mapped tensors, on ``threads`` threads. ``ndf_out``: a :mod:`facetsynth.tables` support table of D
+    memory-mapped tensors, on ``threads`` threads. ``ndf_out``: a :mod:`facetsynth.io.tables` support table of D
     (channel ``ndf``) and W (``confidence``) on each point's W > 0.
 
     For virtual captures, accuracy is measured against
-    :func:`facetsynth.partial_ndf.recoverable_ndf` over cells with W >= 0.5,
+    :func:`facetsynth.fit.partial_ndf.recoverable_ndf` over cells with W >= 0.5,
     on the points :func:`facetsynth.evaluation.truth.scored_points` picks. The other shadowing method and
     view model are compared on the same points by :func:`facetsynth.evaluation.partial_ndf.variant_errors`
     (a test, not every run: it fits the points again per variant).

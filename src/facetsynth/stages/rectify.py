@@ -9,14 +9,14 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import manifest
+from ..capture import manifest
 from ..evaluation.rectify import truth_scores
-from ..fileio import atomic_dir, file_key, read_frame, write_exr, write_json
-from ..frames import map_frames
-from ..errors import InputError
-from ..camera import Camera
-from ..plane import PlaneGrid
-from ..rectify import native_resolution, sample_pixels, visible_cells, warp_sample
+from ..io.fileio import atomic_dir, file_key, read_frame, write_exr, write_json
+from ..io.frames import map_frames
+from ..io.errors import InputError
+from ..geometry.camera import Camera
+from ..geometry.plane import PlaneGrid
+from ..capture.rectify import native_resolution, sample_pixels, visible_cells, warp_sample
 from .common import RuleFiles, StageSettings
 
 log = logging.getLogger(__name__)
@@ -50,7 +50,7 @@ def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threa
     truth (:func:`facetsynth.evaluation.rectify.truth_scores`).
 
     ``resolution`` "auto": the grid with as many cells as camera pixels see the sample
-    (:func:`facetsynth.rectify.native_resolution`), logged; ``resolution_rule`` in the metrics says which.
+    (:func:`facetsynth.capture.rectify.native_resolution`), logged; ``resolution_rule`` in the metrics says which.
 
     Writes ``outputs.frames/NNNN.exr`` (R, G, B, ``saturated``: 1 where a clipped pixel or no pixel of the sample
     alone reached the cell, i.e. no valid sample), and
@@ -88,9 +88,9 @@ def plane_grid(capture: dict, camera: Camera, resolution: int | str, manifest_pa
 def warp_frames(capture: dict, camera: Camera, grid: PlaneGrid, filtername: str, frames_dir: Path, manifest_path: Path,
                 threads: int = 1) -> list[dict]:
     """Every HDR frame warped onto ``grid`` from the pixels that see the sample alone (OpenImageIO filter
-    ``filtername``, :func:`facetsynth.rectify.warp_sample`; a cell that saw none is marked ``saturated``: no
+    ``filtername``, :func:`facetsynth.capture.rectify.warp_sample`; a cell that saw none is marked ``saturated``: no
     valid sample) into ``frames_dir/NNNN.exr`` on ``threads`` threads, published
-    whole (:func:`facetsynth.fileio.atomic_dir`: an interrupted run resumes, skipping the frames already
+    whole (:func:`facetsynth.io.fileio.atomic_dir`: an interrupted run resumes, skipping the frames already
     warped); returns each frame's geometry entry (its file, relative to the geometry's folder, and light)."""
     key = {"hdr": file_key(manifest_path), "grid": grid.to_dict(), "filter": filtername, "weights": "sample pixels"}
     on_sample = sample_pixels(camera, capture["sample"]["width"], capture["sample"]["height"]).astype(np.float32)

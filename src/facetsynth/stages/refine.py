@@ -1,4 +1,4 @@
-"""Stage ``refine``: the fitted SVBRDF made to reproduce its own samples (issue 29; :mod:`facetsynth.refine`).
+"""Stage ``refine``: the fitted SVBRDF made to reproduce its own samples (issue 29; :mod:`facetsynth.fit.refine`).
 
 Inputs: the SVBRDF of ``params`` (the paper's pipeline: the initialisation),
 the rectified geometry and ``separate``'s samples (the specular residual, its
@@ -22,22 +22,21 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 from scipy import sparse
 
-from ..errors import InputError
-from ..fileio import atomic_dir, read_npy, write_json
-from ..frames import imap, map_frames
-from ..metrics import finite_or_none
-from ..grid import turn
-from ..microfacet import fresnel, half_vector
-from ..cluster import material_groups, relative_rotation
-from ..synthesis import pairwise_distance, rotate_tuple
-from ..params import normalise, projected_area
-from ..refine import (NormalSums, best_turns, owned_kd, radiance_weights, solve, solve_table, stretch,
-                      table_normal_equations)
+from ..io.errors import InputError
+from ..io.fileio import atomic_dir, read_npy, write_json
+from ..io.frames import imap, map_frames
+from ..evaluation.metrics import finite_or_none
+from ..geometry.grid import turn
+from ..models.microfacet import fresnel, half_vector
+from ..fit.cluster import material_groups, relative_rotation
+from ..fit.synthesis import pairwise_distance, rotate_tuple
+from ..fit.params import normalise, projected_area
+from ..fit.refine import (NormalSums, best_turns, owned_kd, radiance_weights, solve, solve_table, stretch,
+                          table_normal_equations)
 
-from ..svbrdf import SVBRDF
+from ..models.svbrdf import SVBRDF
 from ..evaluation.refine import truth_scores
-from .common import (TILE_POINTS, RectifiedCapture, RuleFiles, StageSettings,
-                     strided, tiles)
+from .common import TILE_POINTS, RectifiedCapture, RuleFiles, StageSettings, strided, tiles
 
 log = logging.getLogger(__name__)
 
@@ -81,7 +80,7 @@ class Settings(StageSettings):
 
 def point_sums(model: SVBRDF, capture: RectifiedCapture, specular, valid, index: np.ndarray,
                separated_kd: np.ndarray | None = None) -> NormalSums:
-    """The normal sums of :func:`facetsynth.refine.solve` at points ``index`` (sorted) from their valid samples
+    """The normal sums of :func:`facetsynth.fit.refine.solve` at points ``index`` (sorted) from their valid samples
     lit from above (i.z > 0), rho = separate's residual + kd/pi, weighted in radiance; a tile of points at a
     time (TILE_POINTS: the (points, frames, 3) temporaries stay small). ``separated_kd`` (P, 3): the kd that
     separate's residual was taken against (default the model's: the pipeline's model carries it; a model
@@ -119,7 +118,7 @@ def samples(capture: RectifiedCapture, specular, valid, index: np.ndarray) -> tu
 
 
 def stretched(model: SVBRDF, s: np.ndarray) -> SVBRDF:
-    """``model`` with each representative's NDF stretched by its s (R,) (:func:`facetsynth.refine.stretch`),
+    """``model`` with each representative's NDF stretched by its s (R,) (:func:`facetsynth.fit.refine.stretch`),
     renormalised, and eq. 5's A(k) made anew from it (the others' tables as they were)."""
     ndf, area = model.ndf.copy(), model.area.copy()
     change = np.flatnonzero(np.asarray(s) != 1.0)
@@ -143,7 +142,7 @@ def isotropic(model: SVBRDF, tolerance: float) -> np.ndarray:
 
 def materials(model: SVBRDF, settings: Settings) -> tuple[np.ndarray, np.ndarray]:
     """The material of every representative (R,) (kd within ``material_tolerance``,
-    :func:`facetsynth.cluster.material_groups`, as params groups them) and every point's representative of
+    :func:`facetsynth.fit.cluster.material_groups`, as params groups them) and every point's representative of
     largest eq. 18 weight (P,)."""
     owner = model.neighbours[np.arange(model.n_points), np.argmax(model.weights, axis=1)]
     reps = (np.arange(model.ndf.shape[0]) if model.representatives is None
@@ -155,7 +154,7 @@ def share_representatives(model: SVBRDF, capture: RectifiedCapture, specular, va
                           settings: Settings) -> tuple[SVBRDF, list]:
     """One NDF per material, turned point by point: every representative of a material (grouped by kd) whose
     completed NDF is the material's main one turned, within ``settings.share_distance`` (eq. 15's relative
-    distance after the best turn, :func:`facetsynth.cluster.relative_rotation` over a half turn), hands its
+    distance after the best turn, :func:`facetsynth.fit.cluster.relative_rotation` over a half turn), hands its
     points to it with that turn added to theirs. Synthesis completes each representative on its own, each
     normalisation carries its own error, and ks made up for it cluster by cluster: steps in ks at every
     cluster border of one material (the demo's copper: nine representatives, one NDF turned; issue 29). An
@@ -241,7 +240,7 @@ def material_points(capture: RectifiedCapture, owner: np.ndarray, members: np.nd
 
 def fitted_error(model: SVBRDF, capture: RectifiedCapture, specular, valid, index: np.ndarray,
                  ridge: float) -> float:
-    """The squared radiance error left at ``index`` by the points' kd, ks fit (:func:`facetsynth.refine.solve`)."""
+    """The squared radiance error left at ``index`` by the points' kd, ks fit (:func:`facetsynth.fit.refine.solve`)."""
     sums = point_sums(model, capture, specular, valid, index)
     a, b = solve(sums, model.kd[index] / np.pi, model.ks[index], ridge)
     return float(sums.sse(a, b).sum())
@@ -249,7 +248,7 @@ def fitted_error(model: SVBRDF, capture: RectifiedCapture, specular, valid, inde
 
 def choose_per_material(model: SVBRDF, capture: RectifiedCapture, specular, valid, settings: Settings, what: str,
                         ladder, apply, threads: int = 1) -> tuple[SVBRDF, list[dict]]:
-    """One parameter per material (representatives grouped by kd, :func:`facetsynth.cluster.material_groups`,
+    """One parameter per material (representatives grouped by kd, :func:`facetsynth.fit.cluster.material_groups`,
     a point belonging to its largest eq. 18 weight's), chosen by the samples: each value of ``ladder`` is
     tried on up to ``settings.material_points`` of the material's points (evenly strided), scored by the
     squared radiance error left by their kd, ks fit, and the minimum between the best one's neighbours
@@ -353,7 +352,7 @@ def half_and_denominator(model: SVBRDF, index: np.ndarray, pp: np.ndarray, i: np
 def choose_turns(model: SVBRDF, capture: RectifiedCapture, specular, valid, settings: Settings,
                  threads: int = 1, points: np.ndarray | None = None) -> tuple[SVBRDF, dict]:
     """Each point's NDF as the one representative, turned within ``turn_window_deg`` (whole sectors, then a
-    fraction of one), that best explains its specular samples (:func:`facetsynth.refine.best_turns`; candidates: the anisotropic
+    fraction of one), that best explains its specular samples (:func:`facetsynth.fit.refine.best_turns`; candidates: the anisotropic
     representatives of its eq. 18 mixture of its own material; a point whose NDF is one isotropic
     representative gets no turn), where that lowers its error by more than ``turn_margin`` against
     the pipeline's mixture and turn; elsewhere (an isotropic lobe: every turn fits alike) the pipeline's NDF
@@ -419,7 +418,7 @@ def fit(model: SVBRDF, capture: RectifiedCapture, specular, valid, settings: Set
     eta and the NDF's stretch, per material (:func:`choose_per_material`);
     each point's NDF turn (:func:`choose_turns`); every table that points use alone, fitted to their samples
     (:func:`refit_tables`), and each point's turn again against them; kd and ks per point
-    (:func:`facetsynth.refine.solve`).
+    (:func:`facetsynth.fit.refine.solve`).
     Returns the refined model and the fit's figures."""
     t0 = time.perf_counter()
     start = model
@@ -450,7 +449,7 @@ def fit(model: SVBRDF, capture: RectifiedCapture, specular, valid, settings: Set
 
 def kd_ks(model: SVBRDF, capture: RectifiedCapture, specular, valid, settings: Settings,
           threads: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """kd/pi and ks per point (P, 3) each (:func:`facetsynth.refine.solve`, the model's own as the prior), and
+    """kd/pi and ks per point (P, 3) each (:func:`facetsynth.fit.refine.solve`, the model's own as the prior), and
     (P,) whether the point had samples."""
     n = capture.n_points
     a0, b0 = model.kd / np.pi, model.ks
@@ -471,8 +470,8 @@ def refit_tables(model: SVBRDF, capture: RectifiedCapture, specular, valid, sett
     """Every NDF table that points use alone (eq. 18 weight 1, after :func:`share_representatives` and
     :func:`choose_turns`: one per material) fitted to the samples of up to ``settings.ndf_points`` of them
     (evenly strided), each sample read in its point's turned frame, with the points' kd, ks (fitted to their
-    samples first, :func:`facetsynth.refine.solve`), eta and A(k) fixed
-    (:func:`facetsynth.refine.table_normal_equations`, :func:`facetsynth.refine.solve_table`: the
+    samples first, :func:`facetsynth.fit.refine.solve`), eta and A(k) fixed
+    (:func:`facetsynth.fit.refine.table_normal_equations`, :func:`facetsynth.fit.refine.solve_table`: the
     completed table is the prior where the samples say little); renormalised, and A(k) made anew. One
     point's samples leave gaps between its lights' half vectors, which synthesis filled by interpolation;
     the points of a table turn it, so together they measure it densely (issue 29: the held-out lights). Tiles
@@ -518,7 +517,7 @@ def samples_rel_l2(model: SVBRDF, capture: RectifiedCapture, specular, valid,
                    separated_kd: np.ndarray) -> float | None:
     """sqrt(sum u (rho - model)^2 / sum u rho^2) over the valid samples of up to FIGURE_POINTS visible points
     (evenly strided): the model against the samples it was fitted on, in radiance (u of
-    :func:`facetsynth.refine.radiance_weights`), on the rectified grid; rho = separate's residual +
+    :func:`facetsynth.fit.refine.radiance_weights`), on the rectified grid; rho = separate's residual +
     ``separated_kd``/pi (the pipeline's kd: the samples stay where they were whatever kd the model has)."""
     index = strided(np.flatnonzero(capture.visible), FIGURE_POINTS)
     if index.size == 0:

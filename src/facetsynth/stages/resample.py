@@ -1,12 +1,12 @@
 """Stage ``resample``: each point's specular samples onto the light-direction grid (sec. 4).
 
 Linear interpolation over one triangulation of the lights' positions
-(:mod:`facetsynth.lightplane`: the same at every point, so two points of one
+(:mod:`facetsynth.geometry.lightplane`: the same at every point, so two points of one
 material get the same slice wherever they sit under the LEDs), push-pull
 (Gortler et al. 1996, as the paper) only beyond the lights' hull.
 
 The grid's resolution follows the sharpness of the measured lobes
-(:mod:`facetsynth.sharpness`): it is decided here, from the data, and
+(:mod:`facetsynth.fit.sharpness`): it is decided here, from the data, and
 recorded with its reason in ``resample/metrics.json``.
 """
 
@@ -18,15 +18,15 @@ from pathlib import Path
 
 import numpy as np
 
-from ..coverage import LightFootprint, read_around, world_grid
-from ..fileio import NpyRows, atomic_path, write_json, write_npy
-from ..frames import imap
-from ..grid import DirectionGrid
-from ..microfacet import half_vector
-from ..lightplane import LightTriangulation
-from ..pushpull import push_pull
-from ..sharpness import grid_resolution, lobe_widths
-from ..tables import join_tables, support_writer
+from ..geometry.coverage import LightFootprint, read_around, world_grid
+from ..io.fileio import NpyRows, atomic_path, write_json, write_npy
+from ..io.frames import imap
+from ..geometry.grid import DirectionGrid
+from ..models.microfacet import half_vector
+from ..geometry.lightplane import LightTriangulation
+from ..fit.pushpull import push_pull
+from ..fit.sharpness import grid_resolution, lobe_widths
+from ..io.tables import join_tables, support_writer
 from .common import TILE_POINTS, RectifiedCapture, RuleFiles, StageSettings, part_points, part_records, tiles
 
 log = logging.getLogger(__name__)
@@ -37,7 +37,7 @@ SHARPNESS_POINTS = 1024    # points (every k-th visible one) whose lobes decide 
 
 def measured_sharpness(capture: RectifiedCapture, spec, ok, grazing_deg: float) -> dict:
     """Median narrow and broad lobe half-widths (deg) over up to SHARPNESS_POINTS visible points that have a
-    resolved specular lobe (:func:`facetsynth.sharpness.lobe_widths`; lights beyond ``grazing_deg``
+    resolved specular lobe (:func:`facetsynth.fit.sharpness.lobe_widths`; lights beyond ``grazing_deg``
     excluded, as in eq. 11)."""
     visible = np.flatnonzero(capture.visible)
     idx = visible[:: max(1, visible.size // SHARPNESS_POINTS)]
@@ -118,10 +118,10 @@ def run_whole(geometry: str | Path, specular: str | Path, valid: str | Path, sli
               colour_out: str | Path, grid_out: str | Path, metrics_out: str | Path,
               settings: Settings = Settings(), threads: int = 1) -> None:
     """The whole capture in one job (``scatter.tiles`` 1). Writes, per point: the specular slice rho~_s(i) on
-    the grid (P, T, F) (channel mean; a :mod:`facetsynth.tables` support table, kept within a cell of the
+    the grid (P, T, F) (channel mean; a :mod:`facetsynth.io.tables` support table, kept within a cell of the
     directions the lights covered, where eq. 11 reads it) and the specular colour (P, 3) (channel ratios,
     mean 1), the grid definition (JSON) and the metrics (the measured lobe widths and the grid they chose).
-    The coverage itself (in W, eq. 12) is geometry: :class:`facetsynth.coverage.LightFootprint`
+    The coverage itself (in W, eq. 12) is geometry: :class:`facetsynth.geometry.coverage.LightFootprint`
     gives it where it is used."""
     capture = RectifiedCapture.load(geometry)
     spec, ok = NpyRows(specular), NpyRows(valid)

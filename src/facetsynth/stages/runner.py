@@ -9,7 +9,7 @@ from typing import Any, Callable
 
 from threadpoolctl import threadpool_limits
 
-from ..errors import InputError
+from ..io.errors import InputError
 from .common import scatter_item
 
 

@@ -3,7 +3,7 @@
 No ground truth is needed: the fitting camera's HDR frames are the
 measurement. The model relights (a) every ``relit_every``-th of the frames it
 was fitted on and (b) the held-out lights (every ``heldout_every``-th frame,
-which ``separate`` kept out of the fit): :mod:`facetsynth.selfcheck` defines
+which ``separate`` kept out of the fit): :mod:`facetsynth.evaluation.selfcheck` defines
 both subsets and the scores. Pixels clipped in a frame (hdr's ``saturated``)
 are left out of that frame's scores. Writes ``selfcheck/metrics.json`` and,
 per subset, a measured | predicted | 4 x difference picture of its worst frame.
@@ -26,13 +26,13 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from .. import manifest
-from ..fileio import read_frame, read_json, write_json
-from ..metrics import finite_or_none
-from ..predict import FrameRenderer, load_model
-from ..rectify import sample_pixels
+from ..capture import manifest
+from ..io.fileio import read_frame, read_json, write_json
+from ..evaluation.metrics import finite_or_none
+from ..app.predict import FrameRenderer, load_model
+from ..capture.rectify import sample_pixels
 from ..rti import fits
-from ..selfcheck import FrameScores, heldout_lights, relit_frames
+from ..evaluation.selfcheck import FrameScores, heldout_lights, relit_frames
 from .common import RuleFiles, StageSettings
 from .validate import _to_png, side_by_side
 
@@ -45,14 +45,14 @@ POOR_FIT_REL_L2 = 0.15
 PICTURE_HEIGHT = 320   # the worst frames' pictures are at least this tall (the report's figures)
 
 DEFINITION = ("relative L2 = sqrt(sum (pred - meas)^2 / sum meas^2) over the pixels that see the sample alone "
-              "(all four corners on it, facetsynth.rectify.sample_pixels; pixels clipped in a frame left out of "
+              "(all four corners on it, facetsynth.capture.rectify.sample_pixels; pixels clipped in a frame left out of "
               "that frame), every frame and RGB channel of "
               "the subset, meas = the hdr stage's frames of the fitting camera; specular_rel_l2 = the same error "
               "against sum (meas - diffuse)^2, diffuse = the model's own kd/pi (n.i) L / r^2; frame PSNR = 20 "
               "log10(peak / rmse) per frame, peak = the frame's largest measured radiance on the sample, capped "
               "at 100 dB. relit: every relit_every-th frame of those the fit used; heldout: every "
               "heldout_every-th frame from heldout_every // 2, kept out of every stage after hdr "
-              "(facetsynth.selfcheck)")
+              "(facetsynth.evaluation.selfcheck)")
 
 
 @dataclass(frozen=True)

@@ -2,7 +2,7 @@
 002 sec. 4).
 
 Real samples have relief. Each point's shading normal n(x) comes first, by robust photometric stereo on the
-diffuse part (:func:`facetsynth.normals.estimate`: highlights and shadows trimmed); eq. 8 is then read in the
+diffuse part (:func:`facetsynth.fit.normals.estimate`: highlights and shadows trimmed); eq. 8 is then read in the
 point's frame, rho = I |P - x|^2 / (L n(x) . i), and so is everything after: the stage writes rectify's
 geometry with the normals (``separate/geometry.json``), which every later stage reads
 (:class:`~facetsynth.stages.common.RectifiedCapture`). Cast shadows, samples far darker than the diffuse
@@ -10,7 +10,7 @@ part predicts, are invalid: masked, not fitted.
 
 A capture that states no light intensities (an ``.lp`` without them: ``assumed`` lists ``intensities``) gets
 them from its own photos: a robust RGB factor per light from the diffuse part
-(:func:`facetsynth.light_factors.estimate`, the mean factor of each channel fixed to 1). The samples are
+(:func:`facetsynth.fit.light_factors.estimate`, the mean factor of each channel fixed to 1). The samples are
 divided by it, and ``separate/geometry.json`` carries the corrected intensities to every later stage. Held-out
 lights are not seen: their factors are their neighbours' on the sphere (fill_from_neighbours).
 """
@@ -26,18 +26,18 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .. import light_factors
+from ..fit import light_factors
 from ..evaluation.separate import truth_scores
-from ..fileio import HALF, as_half, atomic_path, read_frame, read_json, write_exr, write_json, write_npy
-from ..errors import InputError
-from ..frames import imap, map_frames
-from ..light_factors import Factors, fill_from_neighbours
-from ..normals import (FLAT, HIGHLIGHT_CONTRAST, diffuse_enough, highlight_normals, photometric_normals,
-                       relief_normals)
-from ..microfacet import half_vector
-from ..render import light_geometry, towards
-from ..selfcheck import heldout_lights
-from ..separation import brdf_samples, diffuse_level, specular_residual
+from ..io.fileio import HALF, as_half, atomic_path, read_frame, read_json, write_exr, write_json, write_npy
+from ..io.errors import InputError
+from ..io.frames import imap, map_frames
+from ..fit.light_factors import Factors, fill_from_neighbours
+from ..fit.normals import (FLAT, HIGHLIGHT_CONTRAST, diffuse_enough, highlight_normals, photometric_normals,
+                           relief_normals)
+from ..models.microfacet import half_vector
+from ..models.render import light_geometry, towards
+from ..evaluation.selfcheck import heldout_lights
+from ..fit.separation import brdf_samples, diffuse_level, specular_residual
 from .common import RectifiedCapture, RuleFiles, StageSettings, flag_degenerate, strided, tiles
 
 log = logging.getLogger(__name__)
@@ -60,9 +60,9 @@ CAST_SHADOW = 0.5
 # (docs/decisions.md, "Shading normals"); config true forces them.
 FACTOR_POINTS = 20_000   # points the lights' intensity factors are estimated from (evenly strided)
 FACTORS_DEFINITION = ("per light, the RGB factor f by which its intensity differs from the nominal one, from the "
-                      "photos' diffuse part (b = f kd/pi n.i, robust rank-1 fit; facetsynth.light_factors); the mean "
+                      "photos' diffuse part (b = f kd/pi n.i, robust rank-1 fit; facetsynth.fit.light_factors); the mean "
                       "of each channel's factors over the estimated lights is 1; fallback lights (held out, or too "
-                      "few usable points) take their neighbours' on the sphere (facetsynth.light_factors."
+                      "few usable points) take their neighbours' on the sphere (facetsynth.fit.light_factors."
                       "fill_from_neighbours); spread: the robust dispersion of a light's ratios")
 # n . i below this: the light grazes the point's own facet; eq. 8 would divide by ~0 (invalid, as below the plane)
 MIN_COS = 1e-3
@@ -94,7 +94,7 @@ class Settings(StageSettings):
     lowest: float = 0.03      # eq. 9 averages this fraction of the qualifying samples, those of lowest channel
                               # mean (0: eq. 9's minimum, per channel)
     heldout_every: int = 10   # config selfcheck.heldout_every: every k-th frame's samples are invalid, so that no
-                              # later stage sees those lights (facetsynth.selfcheck.heldout_lights; 0: none)
+                              # later stage sees those lights (facetsynth.evaluation.selfcheck.heldout_lights; 0: none)
     shading_normals: bool | str = "auto"   # a normal per point (photometric stereo): "auto" for directional lights
                                            # (a dome) only (AUTO_NORMALS), True always, False: the plane's +z
 
@@ -110,11 +110,11 @@ class Separated(NamedTuple):
 
 def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threads: int = 1) -> None:
     """Load, separate, write: per point and light of ``inputs.geometry``, rho by eq. 8, kd = pi rho_d by eq. 9
-    (:func:`~facetsynth.separation.diffuse_level`), rho~_s = rho - rho_d; for a virtual capture, kd scored
+    (:func:`~facetsynth.fit.separation.diffuse_level`), rho~_s = rho - rho_d; for a virtual capture, kd scored
     against the truth (:func:`facetsynth.evaluation.separate.truth_scores`).
 
     Writes ``kd`` (EXR on the rectified grid), the specular residual (P, F, 3) in half floats
-    (:func:`~facetsynth.fileio.as_half`) and the sample validity (P, F) as memory-mappable .npy
+    (:func:`~facetsynth.io.fileio.as_half`) and the sample validity (P, F) as memory-mappable .npy
     (frames are streamed in; memory does not grow with the sample size).
     Invalid samples: saturated, a point outside the camera's view, a light held out for the self-check
     (``settings.heldout_every``), a light at or behind the point's facet, or a cast shadow (CAST_SHADOW).
@@ -219,9 +219,9 @@ def eq8_samples(capture: RectifiedCapture, held: np.ndarray, scratch: Path, vali
 
 def shading_normals(capture: RectifiedCapture, rho, valid, threads: int = 1) -> tuple[np.ndarray, ...]:
     """The shading normals (P, 3) from eq. 8's samples ``rho`` and their validity, tile by tile on ``threads``
-    threads: robust photometric stereo on the diffuse part where it tells (:func:`facetsynth.normals.
-    photometric_normals`, ``diffuse``), else the highlights' where they glint (:func:`facetsynth.normals.
-    highlight_normals`), then the relief's common tilt removed (:func:`facetsynth.normals.relief_normals`).
+    threads: robust photometric stereo on the diffuse part where it tells (:func:`facetsynth.fit.normals.
+    photometric_normals`, ``diffuse``), else the highlights' where they glint (:func:`facetsynth.fit.normals.
+    highlight_normals`), then the relief's common tilt removed (:func:`facetsynth.fit.normals.relief_normals`).
     Returns the normals, the diffuse part's albedo (P,) and ``diffuse`` (P,) bool; logged."""
     n_points, points = capture.n_points, capture.points
     normals, albedo = np.tile(FLAT, (n_points, 1)), np.zeros(n_points)
@@ -250,7 +250,7 @@ def eq9_residuals(capture: RectifiedCapture, settings: Settings, rho, valid, nor
                   threads: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """Eq. 9 tile by tile on ``threads`` threads: eq. 8's samples ``rho`` divided by the lights' ``factors``
     (if any), re-read in each point's shading frame (with ``settings.shading_normals``: :func:`_in_shading_frame`,
-    which also updates ``valid``), kd = pi rho_d (:func:`facetsynth.separation.diffuse_level`), and the specular
+    which also updates ``valid``), kd = pi rho_d (:func:`facetsynth.fit.separation.diffuse_level`), and the specular
     residual rho - rho_d in half floats into ``specular_out`` (P, F, 3). Returns kd (P, 3) and which points show
     specular signal (P,): a residual of at least SIGNAL_RATIO x the diffuse level."""
     n_points, n_frames = capture.n_points, len(capture.frame_files)
@@ -327,10 +327,10 @@ def fit_metrics(separated: Separated, capture: RectifiedCapture, g: dict, settin
 # ---------------------------------------------------------------------------- helpers
 def _light_factors(rho, valid, capture: RectifiedCapture, normals: np.ndarray, trusted: np.ndarray,
                    reference: dict | None = None):
-    """The lights' RGB factors (:func:`facetsynth.light_factors.estimate`) from eq. 8's samples ``rho`` (P, F, 3)
+    """The lights' RGB factors (:func:`facetsynth.fit.light_factors.estimate`) from eq. 8's samples ``rho`` (P, F, 3)
     of evenly strided ``trusted`` points (diffuse enough to have a normal): b = rho (+z . i) against the
     diffuse shading n . i; or, with a ``reference`` box {"x": [x0, x1], "y": [y0, y1]} (metres), from the
-    points in it (:func:`facetsynth.light_factors.reference_region`). Only the valid samples take part
+    points in it (:func:`facetsynth.fit.light_factors.reference_region`). Only the valid samples take part
     (held-out lights: none; their factors are their neighbours')."""
     if reference is not None:
         x, y = capture.points[:, 0], capture.points[:, 1]

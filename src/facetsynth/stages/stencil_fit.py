@@ -30,11 +30,11 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from ..errors import InputError
+from ..io.errors import InputError
 from ..evaluation.truth import truth_of
-from ..fileio import atomic_dir, write_json
-from ..scene import MaterialMaps
-from ..svbrdf import SVBRDF
+from ..io.fileio import atomic_dir, write_json
+from ..truth.scene import MaterialMaps
+from ..models.svbrdf import SVBRDF
 from ..stencil import fit, model_to_json, to_brdf_explorer
 from ..stencil.fit import axis_error_deg
 from ..stencil.grid import sample_utia

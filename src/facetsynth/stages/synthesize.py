@@ -2,7 +2,7 @@
 
 The exemplar set is the visible points' partial NDFs (strided down to at most
 ``max_exemplars``) at every rotation (eq. 13). Each representative is
-completed by :func:`facetsynth.synthesis.complete`, with the ANN search of
+completed by :func:`facetsynth.fit.synthesis.complete`, with the ANN search of
 sec. 5.3 (``search: ann``) or the exact search (``search: exact``); with
 ``compare`` the other mode is run too and both are recorded (keys suffixed
 ``_ann`` and ``_exact``; the unsuffixed keys are the written mode's). The
@@ -22,12 +22,12 @@ from typing import Any
 
 import numpy as np
 
-from .. import synthesis
-from ..cluster import material_groups
-from ..errors import InputError
-from ..fileio import read_exr, read_json, write_json, write_npy
-from ..grid import DirectionGrid
-from ..tables import SupportTable
+from ..fit import synthesis
+from ..fit.cluster import material_groups
+from ..io.errors import InputError
+from ..io.fileio import read_exr, read_json, write_json, write_npy
+from ..geometry.grid import DirectionGrid
+from ..io.tables import SupportTable
 from ..evaluation.synthesize import truth_scores
 from .common import RectifiedCapture, RuleFiles, StageSettings, flag_degenerate, tiles
 
@@ -86,7 +86,7 @@ class Settings(StageSettings):
     material_tolerance: float = 0.25  # config params.material_tolerance: representatives' kd within it: one material
 
     def knobs(self) -> synthesis.Knobs:
-        """The knobs of :func:`facetsynth.synthesis.complete`."""
+        """The knobs of :func:`facetsynth.fit.synthesis.complete`."""
         return synthesis.Knobs(overlap_range=tuple(self.overlap), max_iterations=self.max_iterations,
                                target_coverage=self.target_coverage, max_relative_error=self.max_relative_error,
                                candidates_per_region=self.candidates, fill_overlap=self.fill_overlap)
@@ -244,11 +244,11 @@ def prepare(data: Data, settings: Settings) -> Prepared:
 
 def isotropy(data: Data, settings: Settings) -> tuple[np.ndarray, dict, np.ndarray]:
     """Isotropy is a property of the material: representatives are grouped into materials by kd
-    (:func:`facetsynth.cluster.material_groups`, as in ``params``; without kd each representative decides
+    (:func:`facetsynth.fit.cluster.material_groups`, as in ``params``; without kd each representative decides
     alone), and a material whose representatives' partial NDFs deviate from azimuthal symmetry by less
-    than ``isotropic_threshold`` in the median (relative L2, :func:`facetsynth.synthesis.anisotropy`; one
+    than ``isotropic_threshold`` in the median (relative L2, :func:`facetsynth.fit.synthesis.anisotropy`; one
     representative alone is noisy when its lobe is narrower than a ring) is isotropic: its representatives
-    are completed by azimuthal symmetry (:func:`facetsynth.synthesis.complete_isotropic`), without a
+    are completed by azimuthal symmetry (:func:`facetsynth.fit.synthesis.complete_isotropic`), without a
     search. Returns each representative's statistic, each material's median, and the isotropic ones."""
     stat = synthesis.anisotropy(data.rep_d, data.rep_w, data.grid)
     material = (np.arange(len(data.representatives)) if data.rep_kd is None
@@ -277,8 +277,8 @@ def exemplar_set(sources: list[Source], skip: bool) -> Exemplars:
 
 
 def orientation_concentration(exemplars: Exemplars, grid: DirectionGrid, isotropic_threshold: float) -> float | None:
-    """:func:`facetsynth.synthesis.orientation_concentration` over the exemplars whose partial NDF is
-    anisotropic (:func:`facetsynth.synthesis.anisotropy` >= ``isotropic_threshold``); None without any."""
+    """:func:`facetsynth.fit.synthesis.orientation_concentration` over the exemplars whose partial NDF is
+    anisotropic (:func:`facetsynth.fit.synthesis.anisotropy` >= ``isotropic_threshold``); None without any."""
     axes = []
     for t in tiles(len(exemplars.d), 512):
         d, w = np.asarray(exemplars.d[t], float), np.asarray(exemplars.w[t], float)
@@ -290,7 +290,7 @@ def orientation_concentration(exemplars: Exemplars, grid: DirectionGrid, isotrop
 
 def complete_all(mode: str, data: Data, prepared: Prepared, settings: Settings) -> Run:
     """Every representative completed with search ``mode``: isotropic ones by azimuthal symmetry, the others
-    by :func:`facetsynth.synthesis.complete` (sec. 5.2; ``ann``: sec. 5.3's index, :func:`ann_index`)."""
+    by :func:`facetsynth.fit.synthesis.complete` (sec. 5.2; ``ann``: sec. 5.3's index, :func:`ann_index`)."""
     t0, c0 = time.perf_counter(), time.process_time()
     index = ann_index(prepared, data.grid, settings) if mode == "ann" and not prepared.skip else None
     build = 0.0 if index is None else index.build_seconds
@@ -413,7 +413,7 @@ def flag_rotation_diversity(metrics: dict, concentration: float | None, max_rela
 # ---------------------------------------------------------------------------- write
 def write(outputs: Outputs, completions: list, grid_dict: dict) -> None:
     """ndf (R, T, F), its W before fill, the cosine of the Fresnel factor each cell carries (see
-    :func:`facetsynth.synthesis.complete`), all float32, and the direction grid."""
+    :func:`facetsynth.fit.synthesis.complete`), all float32, and the direction grid."""
     write_npy(outputs.ndf, np.stack([c.ndf for c in completions]).astype(np.float32))
     write_npy(outputs.confidence, np.stack([c.confidence for c in completions]).astype(np.float32))
     write_npy(outputs.fresnel_cosine, np.stack([c.fresnel_cosine for c in completions]).astype(np.float32))

@@ -2,10 +2,10 @@
 
 For a virtual sample the virtual rig renders held-out captures from views
 that were not used for fitting (``heldout_capture``); the fitted SVBRDF and
-the Ward baseline predict them with :func:`facetsynth.predict.predict` (the
+the Ward baseline predict them with :func:`facetsynth.app.predict.predict` (the
 code path of ``facetsynth predict``); predictions are scored against the true
 radiance of the held-out frames over the sample's pixels
-(:func:`facetsynth.metrics.image_scores`, normalisation stated there and in
+(:func:`facetsynth.evaluation.metrics.image_scores`, normalisation stated there and in
 the metrics file), and side-by-side images are written.
 """
 
@@ -20,13 +20,13 @@ from typing import Any
 
 import numpy as np
 
-from .. import manifest
-from ..fileio import atomic_path, read_rgb, read_yaml, write_json
-from ..metrics import finite_or_none, frame_psnr, image_scores, relative_l2
-from ..predict import FrameRenderer, load_model, predict
-from ..render import radiance
-from ..scene import Scene
-from ..virtual_rig import VirtualRig
+from ..capture import manifest
+from ..io.fileio import atomic_path, read_rgb, read_yaml, write_json
+from ..evaluation.metrics import finite_or_none, frame_psnr, image_scores, relative_l2
+from ..app.predict import FrameRenderer, load_model, predict
+from ..models.render import radiance
+from ..truth.scene import Scene
+from ..truth.virtual_rig import VirtualRig
 from .common import RuleFiles, StageSettings
 
 log = logging.getLogger(__name__)
@@ -173,7 +173,7 @@ def diffuse_truth(scene: Scene, camera, lights: np.ndarray, intensities: np.ndar
 
 def region_scores(truth: np.ndarray, prediction: np.ndarray, mask: np.ndarray, region: np.ndarray,
                   names: list[str]) -> dict[str, float | None]:
-    """Relative L2 of the radiance (:func:`facetsynth.metrics.relative_l2`) per truth region: which
+    """Relative L2 of the radiance (:func:`facetsynth.evaluation.metrics.relative_l2`) per truth region: which
     material holds a view's error (a scene's mean hides a region its model cannot show)."""
     return {name: finite_or_none(relative_l2(prediction, truth, mask & (region == k)))
             for k, name in enumerate(names) if np.any(mask & (region == k))}
@@ -185,10 +185,10 @@ def true_rig(m: dict[str, Any]) -> tuple[Any, np.ndarray, np.ndarray]:
     The manifest's calibrated values, or, when the virtual rig had a
     calibration error (``truth/calibration.json``), the true ones: the camera
     turned by its rotation, each frame's LED moved by its offset and scaled by
-    its intensity factor (:class:`facetsynth.virtual_rig.CalibrationError`).
+    its intensity factor (:class:`facetsynth.truth.virtual_rig.CalibrationError`).
     """
-    from ..camera import Camera
-    from ..fileio import read_json
+    from ..geometry.camera import Camera
+    from ..io.fileio import read_json
     camera = manifest.camera(m)
     lights, intensities = manifest.lights(m["frames"]), manifest.light_intensities(m["frames"])
     record = m.get("truth", {}).get("calibration")
@@ -208,11 +208,11 @@ def trusted_scores(truth: np.ndarray, prediction: np.ndarray, mask: np.ndarray,
     """The scores that do not hide faults behind the view's peak (issue 13 item 4).
 
     ``heldout_rel_l2``: relative L2 of the radiance over ``mask``, every frame
-    and channel (:func:`facetsynth.metrics.relative_l2`);
+    and channel (:func:`facetsynth.evaluation.metrics.relative_l2`);
     ``heldout_specular_rel_l2``: the same of the specular part, (prediction -
     diffuse) against (truth - diffuse), over ``specular_mask`` (None without a
     diffuse truth); ``heldout_frame_psnr_median_db`` / ``_worst_db``: median and
-    minimum of each frame's own PSNR (:func:`facetsynth.metrics.frame_psnr`).
+    minimum of each frame's own PSNR (:func:`facetsynth.evaluation.metrics.frame_psnr`).
     Values that are not finite become None (no NaN leaves the stage).
     """
     psnr = frame_psnr(truth, prediction, mask, MAX_FRAME_PSNR_DB)

@@ -10,7 +10,7 @@ fit alone). Both models are scored against the same data on the same UTIA grid
 Anisotropic cases (issue 18, item 3): fabric-like materials with two or three rotated
 lobes of different widths and colours, rendered on the UTIA grid
 
-* from the project's microfacet model (:func:`facetsynth.microfacet.rho`, GGX lobes with
+* from the project's microfacet model (:func:`facetsynth.models.microfacet.rho`, GGX lobes with
   alpha_u != alpha_v at rotated frames), and
 * from a measured isotropic RGL BRDF made anisotropic by stretching both directions
   along a rotated tangent axis, w -> normalize(diag(s, 1, 1) R(phi) w) (reciprocal, the
@@ -30,8 +30,8 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from . import grid, kurt, readers, scores
-from ..bench import write_csv
-from ..microfacet import rho
+from ..app.bench import write_csv
+from ..models.microfacet import rho
 from .fit import axis_error_deg, fit
 from .model import Mode, StencilModel, evaluate_utia
 

@@ -21,7 +21,7 @@ import json
 
 import numpy as np
 
-from facetsynth.errors import InputError
+from facetsynth.io.errors import InputError
 
 from .model import COS_FLOOR, Mode, StencilModel, lobes
 

@@ -3,7 +3,7 @@
 Every reader returns the BRDF evaluated on the UTIA grid
 (:mod:`facetsynth.stencil.grid`): float64 ``(3, 6, 48, 6, 48)``, linear RGB,
 1/sr, without the cosine factor.  Bad files raise
-:class:`facetsynth.errors.InputError` naming the file and the problem:
+:class:`facetsynth.io.errors.InputError` naming the file and the problem:
 also bad *values*, named by field with counts (NaN or Inf anywhere; negative
 values beyond measurement noise, :data:`NOISE_FRACTION`; no positive value,
 which would fit a zero model "perfectly"; a reflectance above :data:`MAX_BRDF`).
@@ -29,8 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from facetsynth.errors import InputError
-from facetsynth.fileio import read_exr, write_exr
+from facetsynth.io.errors import InputError
+from facetsynth.io.fileio import read_exr, write_exr
 
 from . import grid
 

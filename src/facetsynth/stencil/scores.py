@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..metrics import ssim_map
+from ..evaluation.metrics import ssim_map
 from . import grid
 
 __all__ = ["SRGB_TO_XYZ", "WHITE_D65", "exposure", "srgb_oetf", "rgb_to_lab", "ciede2000",

@@ -1,0 +1,3 @@
+"""What users run outside the workflow: the facetsynth command, prediction, previews, summaries, the report's
+figures and the benchmarks.
+"""
