@@ -68,7 +68,7 @@ test-cluster: $(VENV)/.installed-cluster
 test-firmware: $(VENV)/.installed-test
 	bash rig/firmware/install-toolchain.sh
 	$(MAKE) -C rig/firmware BUILD_DIR=$(CURDIR)/.firmware-build
-	$(BIN)/python -m pytest -q -m 'not scenes and not cluster' tests/test_rig_conformance.py
+	$(BIN)/python -m pytest -q -m 'not scenes and not cluster' tests/rig/test_rig_conformance.py
 
 bench: $(VENV)/.installed-run
 	$(BIN)/python workflow/scripts/bench.py --cores $(CORES) --presets $(BENCH_PRESETS) --scenes $(BENCH_SCENES) $(BENCH_ARGS)

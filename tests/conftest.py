@@ -2,11 +2,17 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
+# The test folders mirror the package's (tests/fit/ tests facetsynth.fit, ...). A test module imports another's
+# helpers by its name (``from test_grid import sph``), as when they were one folder: pytest puts the folder of
+# each test module it collects on sys.path, and a module collected later may need one collected before it.
+sys.path[:0] = sorted(str(p) for p in Path(__file__).parent.iterdir() if p.is_dir() and p.name not in
+                      ("data", "cluster", "__pycache__"))
 # The seven measured RGL BRDFs (CC0), vendored from shared/data/rgl: real reflectance nobody here made.
 RGL_DIR = REPO / "resources" / "brdfs" / "rgl"
 RGL_FILES = sorted(RGL_DIR.glob("*.bsdf"))

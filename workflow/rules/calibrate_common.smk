@@ -1,6 +1,6 @@
 # The functions of calibrate.smk's rules, apart from common.smk: calibrate.smk runs without the samples'
 # workflow too (a Snakefile with a config of seed and virtual.noise that includes calibrate.smk alone:
-# tests/test_calibration.py), and snakemake --lint wants no functions beside rules.
+# tests/calibration/test_calibration.py), and snakemake --lint wants no functions beside rules.
 
 from dataclasses import fields as _fields
 

@@ -22,7 +22,7 @@ The exported folder is self-contained (numpy and Mitsuba 3 only, no facetsynth):
     export.json         what was exported, from where, and how to use it
 
 Only the ``scalar_rgb`` variant runs the Python plugin (one Python call per shading point: about 4.5 s
-for the demo's 240 x 160 held-out view at 4 spp on one core, tests/test_export_mitsuba.py).
+for the demo's 240 x 160 held-out view at 4 spp on one core, tests/export/test_export_mitsuba.py).
 """
 
 from __future__ import annotations

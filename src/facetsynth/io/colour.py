@@ -1,7 +1,7 @@
 """The sRGB transfer function (IEC 61966-2-1): glTF's colour textures and the report's pictures.
 
 (``facetsynth render`` encodes through OpenImageIO's colour management instead; the two agree to 8 bits:
-tests/test_preview_inspect.py.)
+tests/app/test_preview_inspect.py.)
 """
 
 from __future__ import annotations

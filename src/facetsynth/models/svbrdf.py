@@ -84,7 +84,7 @@ def mixture_at(table, neighbours, weights, index, t, p, n_theta, n_phi):
     """Eq. 18's mixture sum_k w(x, k) table[j(x, k)] at continuous cell coordinates (t, p) (N,)
     (:meth:`DirectionGrid.coordinates`) for points ``index`` (N,): each table read as
     :class:`facetsynth.geometry.grid.Bilinear` reads it (:func:`facetsynth.geometry.grid.bilinear_stencil`), with its arithmetic
-    in its order, so the result is bitwise numpy's (tests/test_svbrdf.py). ``table`` (R, cells), ``neighbours``
+    in its order, so the result is bitwise numpy's (tests/models/test_svbrdf.py). ``table`` (R, cells), ``neighbours``
     and ``weights`` (P, K); a zero weight reads nothing."""
     out = np.zeros(index.size)
     for s in range(index.size):

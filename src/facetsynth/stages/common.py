@@ -23,7 +23,7 @@ TILE_POINTS = 256  # points per tile: bounds the memory of every per-point stage
 class StageSettings:
     """Base of a stage's frozen settings dataclass: one field per key of its config section (and of the keys
     its rule takes from other sections, under their config names); the defaults are the config's
-    (tests/test_config.py checks config/config.yaml against them). ``MEASURED`` names the fields that are
+    (tests/stages/test_config.py checks config/config.yaml against them). ``MEASURED`` names the fields that are
     no config keys (measured defaults the rule does not pass); every other field must come from the rule."""
 
     MEASURED: ClassVar[tuple[str, ...]] = ()

@@ -13,7 +13,7 @@ field naming the renderer, its version and the BSDF. Import it with a
 sample-sheet row ``NAME  import  DIR``; render a held-out view with
 ``--view THETA PHI`` and check the fit with ``facetsynth predict``.
 
-Conventions, checked in ``tests/test_mitsuba_capture.py``:
+Conventions, checked in ``tests/truth/test_mitsuba_capture.py``:
 
 * camera: the manifest's OpenCV camera (``X_cam = R X + t``, x right, y down,
   z forward) is a Mitsuba ``perspective`` sensor whose ``to_world`` has
@@ -73,7 +73,7 @@ VARIANT = "scalar_rgb"
 DEMO_MARKERS = {"radius": 0.0025, "positions": [[-0.042, -0.042], [0.042, -0.042], [-0.042, 0.042], [0.042, 0.042]]}
 MARKER_LIFT = 1e-5          # metres above the plane: below Mitsuba's ray offset (~9e-5 m here), so no shadow
 
-# The default material (README, tests/test_mitsuba_capture.py): anisotropic GGX (alpha_u 0.15, alpha_v 0.35)
+# The default material (README, tests/truth/test_mitsuba_capture.py): anisotropic GGX (alpha_u 0.15, alpha_v 0.35)
 # as Mitsuba's rough copper conductor: its complex-index Fresnel term (eq. 6 has a dielectric one), no diffuse.
 EXAMPLE_BSDF = {"type": "roughconductor", "distribution": "ggx", "material": "Cu", "alpha_u": 0.15, "alpha_v": 0.35}
 
@@ -108,7 +108,7 @@ def sensor_dict(camera: Camera, spp: int = 16, seed: int = 0) -> dict[str, Any]:
         "fov_axis": "x",
         "fov": float(np.degrees(2.0 * np.arctan(W / (2.0 * fx)))),
         # OpenCV pixel centre (cx, cy) is Mitsuba film coordinate (cx + 0.5, cy + 0.5); Mitsuba's offsets are
-        # film fractions along its camera axes x left, y up (measured: tests/test_mitsuba_capture.py)
+        # film fractions along its camera axes x left, y up (measured: tests/truth/test_mitsuba_capture.py)
         "principal_point_offset_x": float(-(cx + 0.5 - W / 2) / W),
         "principal_point_offset_y": float(-(cy + 0.5 - H / 2) / H),
         "near_clip": 1e-3,

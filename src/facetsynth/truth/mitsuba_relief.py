@@ -10,7 +10,7 @@ foreign capture (as :mod:`facetsynth.truth.mitsuba_capture` does): HDR EXR frame
 never clipped, ``"saturation": null``), ``manifest.json``, and the truth: ``truth/normals.exr`` (channels X,
 Y, Z: the unit normal of each camera pixel) and ``truth/kd.exr`` (R, G, B: the diffuse albedo kd).
 
-Conventions, checked in ``tests/test_mitsuba_relief.py``:
+Conventions, checked in ``tests/truth/test_mitsuba_relief.py``:
 
 * camera (manifest): ``"projection": "orthographic"``, OpenCV axes (``X_cam = R X + t``, x right, y down, z
   forward), (col, row, 1) = K (X_cam_x, X_cam_y, 1). Top down: R = diag(1, -1, -1), t = (0, 0, 1), K =
@@ -38,7 +38,7 @@ Conventions, checked in ``tests/test_mitsuba_relief.py``:
   interreflection (integrator ``direct``), ``box`` pixel filter, ``hdrfilm`` float32 RGB. rho is
   :func:`facetsynth.models.microfacet.rho` (eq. 6, isotropic GGX, dielectric Fresnel, uncorrelated Smith
   shadowing) with kd, ks, eta, alpha of the material: Mitsuba's ``blendbsdf`` of a ``diffuse`` and a
-  k = 0 ``roughconductor`` (as in tests/test_mitsuba_capture.py). Lights below the tangent plane of a
+  k = 0 ``roughconductor`` (as in tests/truth/test_mitsuba_capture.py). Lights below the tangent plane of a
   pixel's normal (n.l <= 0) leave it black (attached shadow); there are no cast shadows (normal mapping).
 
 Mitsuba is imported inside the functions: the pipeline never needs it.
@@ -235,7 +235,7 @@ def write_texture(path: str | Path, image: np.ndarray) -> Path:
     """An (H, W, 3) image in camera order (row 0 at the top, world +y) as a float32 EXR (R, G, B) texture of the
     sample rectangle, each texel on its pixel: stored bottom row first, as the rectangle's v = 0 is at
     y = -height / 2 and Mitsuba's ``bitmap`` puts the file's row 0 at v = 0 (measured:
-    tests/test_mitsuba_relief.py)."""
+    tests/truth/test_mitsuba_relief.py)."""
     write_exr(path, {"RGB": np.ascontiguousarray(np.asarray(image, float)[::-1]).astype(np.float32)})
     return Path(path)
 

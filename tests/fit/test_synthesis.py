@@ -365,7 +365,7 @@ SGRID = GRID                                    # DirectionGrid(16, 64), as the 
 
 def ggx_partial(frames, scale=1.0, alpha=(0.15, 0.4), grid=SGRID, max_theta=56.0):
     """Partial tuples <D, W> of GGX NDFs at frame azimuths, on a single-view-like domain (a cap to max_theta
-    deg narrowing in phi; the same shape as tests/test_synthesis.py's)."""
+    deg narrowing in phi; the same shape as tests/fit/test_synthesis.py's)."""
     t = np.degrees(grid.theta)[:, None]
     p = np.degrees(grid.phi)[None, :]
     half = np.clip(150.0 - (t - 15.0) * 3.5, 0.0, 180.0)

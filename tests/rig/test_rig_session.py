@@ -32,7 +32,7 @@ from facetsynth.rig.emulator import PtyServer, VirtualController
 from facetsynth.rig.protocol import RigError
 from facetsynth.truth.virtual_rig import VirtualRig
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 VIRTUAL_RIG = ROOT / "rig/descriptions/virtual-demo.yaml"
 SCENE = ROOT / "resources/scenes/demo.yaml"
 SCAN = {"positions": 3, "travel_steps": 4000, "use_every": 8}   # 3 carriage positions x 5 LEDs = 15 frames

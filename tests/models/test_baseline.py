@@ -1,5 +1,5 @@
 """The per-point Ward baseline stage (facetsynth.stages.baseline): its scatter parts (issue 14) on the extremes
-scene of issue 7, part 2 (conftest's ``extreme_run``). The Ward fit itself: tests/test_ward_batched.py."""
+scene of issue 7, part 2 (conftest's ``extreme_run``). The Ward fit itself: tests/models/test_ward_batched.py."""
 
 from test_stages import metrics_of
 

@@ -1,6 +1,6 @@
 """Issue 4 end to end: cluster and synthesize on the wallpaper, satin and brushed scenes (noise-free).
 
-Exact search (the ANN path is covered in tests/test_synthesis.py; pynndescent
+Exact search (the ANN path is covered in tests/fit/test_synthesis.py; pynndescent
 compiles for about 24 s in every new process). The recorded ANN figures at
 full size are in docs/decisions.md.
 """

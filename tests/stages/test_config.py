@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 # stage module -> its config section
 STAGES = {"hdr": "hdr", "rectify": "rectify", "separate": "separate", "resample": "resample",

@@ -35,7 +35,7 @@ from facetsynth.truth.scene import Scene  # noqa: E402
 from facetsynth.stages.capture import check_capture  # noqa: E402
 from facetsynth.truth.virtual_rig import VirtualRig  # noqa: E402
 
-RIG = Path(__file__).parent / "data" / "rig-mitsuba.yaml"
+RIG = Path(__file__).parents[1] / "data" / "rig-mitsuba.yaml"
 SIZE = (0.10, 0.10)
 # The test material: the issue's anisotropic GGX (alpha_u 0.15, alpha_v 0.35) as Mitsuba's rough copper
 # conductor (complex Fresnel, no diffuse term), its u axis along circles about the centre (lathe-turned).
@@ -154,7 +154,7 @@ def test_anisotropic_ggx_and_its_tangent_frame_match_the_model(rig, tmp_path):
         assert rel_l1(-30.0) > 0.05
 
 
-RGL_QUADRANTS = Path(__file__).parents[1] / "resources" / "scenes" / "rgl-quadrants.yaml"
+RGL_QUADRANTS = Path(__file__).parents[2] / "resources" / "scenes" / "rgl-quadrants.yaml"
 
 
 def test_scene_regions_read_the_measured_quadrants_and_refuse_what_they_cannot_render(tmp_path):
@@ -295,7 +295,7 @@ def test_the_fit_predicts_a_held_out_mitsuba_view(fitted):
 
 # --- (d) issue 29: the paper's light density at native resolution, the self-check against Mitsuba ------------
 
-PAPER_480 = Path(__file__).parents[1] / "rig" / "descriptions" / "paper-480.yaml"
+PAPER_480 = Path(__file__).parents[2] / "rig" / "descriptions" / "paper-480.yaml"
 # Issue 29's scenes rendered by Mitsuba at the paper's light density (paper-480: 480 lights, the demo camera),
 # fitted by the default workflow at native resolution (168 x 168), every 10th light held out:
 # - "copper": the turned anisotropic GGX copper (a conductor: its Fresnel is outside eq. 6).

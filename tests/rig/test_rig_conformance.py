@@ -50,7 +50,7 @@ BAD_LED = "ERR 2 EXPECTED LED <index>|OFF"
 BAD_SEQUENCE = "ERR 2 BAD SEQUENCE NUMBER"
 TOO_LONG = "ERR 2 LINE TOO LONG"
 
-FIRMWARE_DIR = Path(__file__).resolve().parents[1] / "rig" / "firmware"
+FIRMWARE_DIR = Path(__file__).resolve().parents[2] / "rig" / "firmware"
 REPLY_TIMEOUT = 15.0  # s; generous: a full-travel move in simavr takes 3-6 s of wall time
 SIMAVR = pytest.param("simavr", marks=pytest.mark.simavr)   # the real step rates: make test-firmware
 BACKENDS = ["emulator", "firmware", SIMAVR]

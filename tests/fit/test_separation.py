@@ -1,6 +1,6 @@
 """facetsynth.fit.separation (eqs. 8-9) and the separate stage at the numerical extremes (issue 7, part 2): eq. 8 up
 to grazing light, eq. 9 with near-mirror and very rough lobes, saturated and NaN / Inf samples, a NaN frame. The
-common cases are in tests/test_reflectance.py."""
+common cases are in tests/fit/test_reflectance.py."""
 
 import numpy as np
 import pytest

@@ -1,7 +1,7 @@
 """facetsynth.fit.partial_ndf (eqs. 5, 10-12) and its stage at the numerical extremes (issue 7, part 2): the view in
 the sample plane, a very rough lobe, the iteration cut short, float32 against float64 runs (push-pull, partial NDF,
 k-means, synthesis and the eta fit), and the stage's scatter parts. The common cases are in
-tests/test_reflectance.py."""
+tests/fit/test_reflectance.py."""
 
 import numpy as np
 import pytest
