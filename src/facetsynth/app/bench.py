@@ -194,6 +194,17 @@ def growth_exponents(rows: Sequence[dict], points_sweep_frames: int = 480,
     return out
 
 
+def save_figure(fig, path: str | Path) -> Path:
+    """``fig`` laid out and written to ``path`` (its folder made), then closed; returns the path."""
+    import matplotlib.pyplot as plt
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
 def plot_scale(rows: Sequence[dict], exponents: dict, path: str | Path, title: str,
                points_sweep_frames: int = 480, frames_sweep_points: int = 128 * 128) -> Path:
     """Wall seconds per stage against P (left) and F (right), log-log, each stage labelled with its
@@ -225,12 +236,7 @@ def plot_scale(rows: Sequence[dict], exponents: dict, path: str | Path, title: s
         ax.legend(fontsize=7, title="stage (exponent)", title_fontsize=7)
     axes[0].set_ylabel("wall seconds")
     fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 WORKFLOW_FILES = ("Snakefile", "workflow", "config", "resources", "rig")
@@ -367,12 +373,7 @@ def plot(rows: Sequence[dict], path: str | Path, title: str, presets: Sequence[s
     ax.set_title(title, fontsize=10)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 # --- real light-dome captures against the per-pixel RTI fits (make bench-real, issue 35) ----------------

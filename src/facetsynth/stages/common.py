@@ -51,6 +51,14 @@ class RuleFiles:
         return cls(**{f.name: _path(named[f.name]) for f in fields(cls) if f.name in named})
 
 
+@dataclass(frozen=True)
+class ModelOutputs(RuleFiles):
+    """The outputs of the rules that write the SVBRDF (``params``: the pipeline's, refine's start; ``refine``: the
+    fitted one a user takes away): its folder and the fit's figures."""
+    svbrdf: Path
+    metrics: Path
+
+
 def _path(value):
     return [Path(v) for v in value] if isinstance(value, (list, tuple)) else Path(value)
 

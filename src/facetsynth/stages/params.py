@@ -30,7 +30,7 @@ from ..models.microfacet import fresnel, half_vector
 from ..models.svbrdf import SVBRDF
 from ..fit.synthesis import SUPPORT
 from ..evaluation.params import truth_scores
-from .common import RectifiedCapture, RuleFiles, StageSettings, tiles
+from .common import ModelOutputs, RectifiedCapture, RuleFiles, StageSettings, tiles
 
 log = logging.getLogger(__name__)
 
@@ -251,11 +251,7 @@ class Inputs(RuleFiles):
     rotation: Path | None = None      # cluster's turn of each point's NDF; None: none
 
 
-@dataclass(frozen=True)
-class Outputs(RuleFiles):
-    """Rule ``params``'s outputs: the pipeline's SVBRDF folder (refine's start) and the fit's figures."""
-    svbrdf: Path
-    metrics: Path
+Outputs = ModelOutputs      # rule params's outputs: the pipeline's SVBRDF folder (refine's start), the figures
 
 
 @dataclass(frozen=True)

@@ -36,7 +36,7 @@ from ..fit.refine import (NormalSums, best_turns, owned_kd, radiance_weights, so
 
 from ..models.svbrdf import SVBRDF
 from ..evaluation.refine import truth_scores
-from .common import TILE_POINTS, RectifiedCapture, RuleFiles, StageSettings, strided, tiles
+from .common import TILE_POINTS, ModelOutputs, RectifiedCapture, RuleFiles, StageSettings, strided, tiles
 
 log = logging.getLogger(__name__)
 
@@ -53,11 +53,7 @@ class Inputs(RuleFiles):
     valid: Path
 
 
-@dataclass(frozen=True)
-class Outputs(RuleFiles):
-    """Rule ``refine``'s outputs: the fitted SVBRDF folder and the fit's figures."""
-    svbrdf: Path
-    metrics: Path
+Outputs = ModelOutputs      # rule refine's outputs: the fitted SVBRDF folder and the fit's figures
 
 
 @dataclass(frozen=True)
