@@ -155,7 +155,7 @@ import resource, signal, sys
 signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
 limit = int(sys.argv[1])
 resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
-from facetsynth import cli
+from facetsynth.app import cli
 sys.exit(cli.main(sys.argv[2:]))
 """
 
