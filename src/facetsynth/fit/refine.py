@@ -216,19 +216,41 @@ def table_normal_equations(cells: np.ndarray, weights: np.ndarray, coef: np.ndar
     return m, v
 
 
-def solve_table(m: sparse.spmatrix, v: np.ndarray, prior: np.ndarray, ridge: float) -> np.ndarray:
-    """The table (C,) minimising the normal equations' error plus lam_j (D_j - prior_j)^2 per cell, clipped at 0.
+def first_differences(n_theta: int, n_phi: int) -> sparse.csr_matrix:
+    """L (C, C), C = n_theta n_phi: D^T L D = sum of (D_j - D_k)^2 over the pairs of neighbouring cells of a
+    table on the polar grid, ring to ring (theta) and sector to sector around each ring (phi, periodic). Cell
+    index t n_phi + p, as :meth:`facetsynth.geometry.grid.DirectionGrid.bilinear` numbers them."""
+    index = np.arange(n_theta * n_phi).reshape(n_theta, n_phi)
+    pairs = np.concatenate([np.stack([index[:-1].ravel(), index[1:].ravel()], axis=1),              # theta
+                            np.stack([index.ravel(), np.roll(index, -1, axis=1).ravel()], axis=1)])  # phi
+    rows = np.repeat(np.arange(len(pairs)), 2)
+    d = sparse.csr_matrix((np.tile([1.0, -1.0], len(pairs)), (rows, pairs.ravel())),
+                          shape=(len(pairs), n_theta * n_phi))
+    return (d.T @ d).tocsr()
 
-    lam_j = ridge x (M_jj + mean of the observed M_jj): a cell the samples see a lot follows them, one they
-    barely see (or not at all) keeps ``prior`` (the completed NDF: "keeping the completed NDF where the view
-    saw nothing", issue 29). ``m`` couples only cells that share a sample's bilinear stencil (at most 9 per
-    cell), so the system is solved sparse (SuperLU): the dense solve was O(C^3), 4.5 s per table on 40 x 160,
-    and on 48 x 192 21 s against the sparse solve's 0.9 s."""
+
+def solve_table(m: sparse.spmatrix, v: np.ndarray, prior: np.ndarray, ridge: float,
+                smooth: float = 0.0, shape: tuple[int, int] | None = None) -> np.ndarray:
+    """The table (C,) minimising the normal equations' error plus lam_j (D_j - prior_j)^2 per cell, plus
+    ``smooth`` x floor x the squared first differences between neighbouring cells (:func:`first_differences`
+    on the grid of ``shape``, (n_theta, n_phi)), clipped at 0.
+
+    lam_j = ridge x (M_jj + floor), floor = the mean of the observed M_jj: a cell the samples see a lot
+    follows them, one they barely see (or not at all) keeps ``prior`` (the completed NDF: "keeping the
+    completed NDF where the view saw nothing", issue 29). The smoothness term is what makes the table between
+    the lights' half vectors an interpolation of what they saw rather than whatever fits each light's own
+    cells (issue 35: on a light dome, the held-out lights fall between them). ``m`` couples only cells
+    that share a sample's bilinear stencil (at most 9 per cell), so the system is solved sparse (SuperLU):
+    the dense solve was O(C^3), 4.5 s per table on 40 x 160, and on 48 x 192 21 s against the sparse
+    solve's 0.9 s."""
     diag = m.diagonal().copy()
     seen = diag > 0
     floor = float(diag[seen].mean()) if seen.any() else 1.0
     lam = ridge * (diag + floor)
-    a = sparse.csc_matrix(m + sparse.diags(lam))
+    a = m + sparse.diags(lam)
+    if smooth > 0:
+        a = a + smooth * floor * first_differences(*shape)
+    a = sparse.csc_matrix(a)
     b = v + lam * prior
     table = spsolve(a, b)
     return np.clip(np.where(np.isfinite(table), table, prior), 0.0, None)   # a non-finite cell keeps the prior

@@ -63,6 +63,8 @@ class Settings(StageSettings):
     ndf_ridge: float = 0.01           # each NDF table fitted to its points' samples; the completed table weighs as
                                       # this share of a cell's samples (0: the tables as synthesised)
     ndf_points: int = 4096            # points (evenly strided) of a table that fit it
+    ndf_smooth: float = 0.3           # ... with neighbouring cells' differences weighing as this share of a cell's
+                                      # samples (0: none)
     eta: tuple = (1.2, 1.4, 1.7, 2.1, 2.7, 3.5, 5.0, 8.0)   # the etas tried per material; (): none
     stretch: tuple = (0.6, 0.7, 0.8, 0.9, 1.0, 1.1)   # the NDF stretches tried per material; (): none
     material_points: int = 300        # points (evenly strided) of a material that choose its eta and stretch
@@ -500,7 +502,8 @@ def refit_tables(model: SVBRDF, capture: RectifiedCapture, specular, valid, sett
         for tile_m, tile_v in imap(equations, list(tiles(index.size)), threads, f"refine: NDF table {k}",
                                    unit="tile"):      # in order: the sums are those of one thread
             m, v = m + tile_m, v + tile_v
-        table = solve_table(m, v, model.ndf[k].astype(float).ravel(), settings.ndf_ridge).reshape(grid.shape)
+        table = solve_table(m, v, model.ndf[k].astype(float).ravel(), settings.ndf_ridge, settings.ndf_smooth,
+                            grid.shape).reshape(grid.shape)
         normalised, _ = normalise(table[None], grid)
         ndf[k] = normalised[0]
         area[k] = projected_area(normalised, grid, model.shadowing_grid)[0]
