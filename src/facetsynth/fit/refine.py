@@ -216,13 +216,15 @@ def table_normal_equations(cells: np.ndarray, weights: np.ndarray, coef: np.ndar
     return m, v
 
 
-def first_differences(n_theta: int, n_phi: int) -> sparse.csr_matrix:
-    """L (C, C), C = n_theta n_phi: D^T L D = sum of (D_j - D_k)^2 over the pairs of neighbouring cells of a
-    table on the polar grid, ring to ring (theta) and sector to sector around each ring (phi, periodic). Cell
-    index t n_phi + p, as :meth:`facetsynth.geometry.grid.DirectionGrid.bilinear` numbers them."""
+def azimuthal_differences(n_theta: int, n_phi: int) -> sparse.csr_matrix:
+    """L (C, C), C = n_theta n_phi: D^T L D = sum of (D[t, p + 1] - D[t, p])^2, the squared steps between
+    neighbouring sectors around each ring of a table on the polar grid (periodic in phi). Cell index
+    t n_phi + p, as :meth:`facetsynth.geometry.grid.DirectionGrid.bilinear` numbers them. Around the rings
+    only: a dome's lights lie on rings of elevation, and a held-out light falls between the azimuths of its
+    ring's neighbours; across the rings the table is the lobe's profile, which a metal's sharp highlight
+    needs unblurred (the coin: docs/decisions.md, "the tables interpolate between the lights")."""
     index = np.arange(n_theta * n_phi).reshape(n_theta, n_phi)
-    pairs = np.concatenate([np.stack([index[:-1].ravel(), index[1:].ravel()], axis=1),              # theta
-                            np.stack([index.ravel(), np.roll(index, -1, axis=1).ravel()], axis=1)])  # phi
+    pairs = np.stack([index.ravel(), np.roll(index, -1, axis=1).ravel()], axis=1)
     rows = np.repeat(np.arange(len(pairs)), 2)
     d = sparse.csr_matrix((np.tile([1.0, -1.0], len(pairs)), (rows, pairs.ravel())),
                           shape=(len(pairs), n_theta * n_phi))
@@ -232,8 +234,8 @@ def first_differences(n_theta: int, n_phi: int) -> sparse.csr_matrix:
 def solve_table(m: sparse.spmatrix, v: np.ndarray, prior: np.ndarray, ridge: float,
                 smooth: float = 0.0, shape: tuple[int, int] | None = None) -> np.ndarray:
     """The table (C,) minimising the normal equations' error plus lam_j (D_j - prior_j)^2 per cell, plus
-    ``smooth`` x floor x the squared first differences between neighbouring cells (:func:`first_differences`
-    on the grid of ``shape``, (n_theta, n_phi)), clipped at 0.
+    ``smooth`` x floor x the squared steps between neighbouring sectors of each ring
+    (:func:`azimuthal_differences` on the grid of ``shape``, (n_theta, n_phi)), clipped at 0.
 
     lam_j = ridge x (M_jj + floor), floor = the mean of the observed M_jj: a cell the samples see a lot
     follows them, one they barely see (or not at all) keeps ``prior`` (the completed NDF: "keeping the
@@ -249,7 +251,7 @@ def solve_table(m: sparse.spmatrix, v: np.ndarray, prior: np.ndarray, ridge: flo
     lam = ridge * (diag + floor)
     a = m + sparse.diags(lam)
     if smooth > 0:
-        a = a + smooth * floor * first_differences(*shape)
+        a = a + smooth * floor * azimuthal_differences(*shape)
     a = sparse.csc_matrix(a)
     b = v + lam * prior
     table = spsolve(a, b)

@@ -63,8 +63,8 @@ class Settings(StageSettings):
     ndf_ridge: float = 0.01           # each NDF table fitted to its points' samples; the completed table weighs as
                                       # this share of a cell's samples (0: the tables as synthesised)
     ndf_points: int = 4096            # points (evenly strided) of a table that fit it
-    ndf_smooth: float = 0.3           # ... with neighbouring cells' differences weighing as this share of a cell's
-                                      # samples (0: none)
+    ndf_smooth: float = 0.3           # ... with the steps between neighbouring sectors of each ring weighing as
+                                      # this share of a cell's samples (0: none)
     eta: tuple = (1.2, 1.4, 1.7, 2.1, 2.7, 3.5, 5.0, 8.0)   # the etas tried per material; (): none
     stretch: tuple = (0.6, 0.7, 0.8, 0.9, 1.0, 1.1)   # the NDF stretches tried per material; (): none
     material_points: int = 300        # points (evenly strided) of a material that choose its eta and stretch
