@@ -16,6 +16,8 @@ Modules, one per stage scored:
 * :mod:`.synthesize`: the completed NDFs at the points; :mod:`.params`: eta, ks and the NDF spread per
   homogeneous region; :mod:`.refine`: kd, ks, ks F0 and the spread of the delivered model.
 
-The held-out views and lights (``validate``, ``selfcheck``) are stages of their own. Importing the package
+Beside them, what scores a fit without a truth: :mod:`.metrics` (relative L2, PSNR, the measures every
+score uses) and :mod:`.selfcheck` (the fit against its own capture's lights, issue 29). The held-out views
+and lights (``validate``, ``selfcheck``) are stages of their own. Importing the package
 imports none of its modules (the truth's among them): import the one you need.
 """
