@@ -7,7 +7,6 @@ from pathlib import Path
 import numpy as np
 
 from ..fit import partial_ndf
-from ..geometry.coverage import LightFootprint
 from ..io.fileio import read_json
 from ..geometry.grid import DirectionGrid
 from ..io.tables import SupportTable
@@ -41,7 +40,8 @@ def variant_errors(geometry: str | Path, slice_path: str | Path, grid_path: str 
     if index.size == 0:
         return {name: None for name in variants}
     s = np.asarray(SupportTable(slice_path).rows("values")[index], float)
-    c = LightFootprint.from_lights(capture.lights).on_grid(capture.points[index], grid, capture.frames(index))
+    from ..stages.partial_ndf import light_coverage    # here: that stage imports this module
+    c = light_coverage(capture, grid)(index)
     maps = truth.take(index)
     result = {}
     for name, (per_point, constrain) in variants.items():

@@ -11,10 +11,11 @@ from ..stages.common import RectifiedCapture, tiles
 from .truth import scored_points, truth_of
 
 
-def truth_scores(capture: RectifiedCapture, grid: DirectionGrid, tables: dict[str, np.ndarray], neighbours: Path,
+def truth_scores(capture: RectifiedCapture, grid: DirectionGrid, tables: dict[str, list], neighbours: Path,
                  weights: Path, rotation: Path | None) -> dict:
-    """Each search mode's completed NDFs (``tables``: {mode: (R, T, F)}, with cluster's eq. 18 ``neighbours``,
-    ``weights`` and ``rotation`` files) against a virtual capture's true ones (:func:`ndf_errors` on
+    """Each search mode's completed NDFs (``tables``: {mode: its R tables (T, F)}, stacked only for a virtual
+    capture; with cluster's eq. 18 ``neighbours``, ``weights`` and ``rotation`` files) against a virtual
+    capture's true ones (:func:`ndf_errors` on
     :func:`facetsynth.evaluation.truth.scored_points`): median and 90th percentile relative L2, points scored;
     {} for a real capture."""
     truth = truth_of(capture)
@@ -25,7 +26,7 @@ def truth_scores(capture: RectifiedCapture, grid: DirectionGrid, tables: dict[st
     turns = None if rotation is None else np.load(rotation).astype(float)
     out = {}
     for mode, table in tables.items():
-        errs = ndf_errors(table, nbr, wts, scored, truth, grid, turns)
+        errs = ndf_errors(np.stack(table), nbr, wts, scored, truth, grid, turns)   # stacked only for a truth
         out[mode] = {"ndf_rel_l2_median": float(np.median(errs)) if errs.size else None,
                      "ndf_rel_l2_p90": float(np.quantile(errs, 0.9)) if errs.size else None,
                      "scored_points": int(errs.size)}

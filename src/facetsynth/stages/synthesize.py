@@ -166,7 +166,7 @@ def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threa
     data = load(inputs, capture, DirectionGrid.from_dict(grid_dict), settings.max_exemplars)
     runs, metrics = fit(data, settings)
     write(outputs, runs[settings.search].completions, grid_dict)
-    tables = {mode: np.stack([c.ndf for c in done.completions]) for mode, done in runs.items()}
+    tables = {mode: [c.ndf for c in done.completions] for mode, done in runs.items()}
     metrics.update(by_mode(truth_scores(capture, data.grid, tables, inputs.neighbours, inputs.weights,
                                         inputs.rotation), settings.search))
     metrics["ground_truth"] = capture.truth_scene is not None
