@@ -353,9 +353,16 @@ def _light_factors(rho, valid, capture: RectifiedCapture, normals: np.ndarray, t
                         fallback=~ok.any(axis=0) | np.all(rgb == 1.0, axis=1))
     else:
         found = light_factors.estimate(b, shading, ok)
-    if np.all(capture.lights[:, 3] == 0):      # directional: the held-out lights' factors from their neighbours
-        found = replace(found, rgb=fill_from_neighbours(capture.lights[:, :3], found.rgb, found.fallback))
-    return found
+    return filled_from_neighbours(found, capture.lights, capture.points[capture.visible].mean(axis=0)
+                                  if capture.visible.any() else np.zeros(3))
+
+
+def filled_from_neighbours(found: Factors, lights: np.ndarray, centre: np.ndarray) -> Factors:
+    """``found`` with the fallback (held-out) lights' factors taken from their neighbours on the sphere of
+    directions seen from the sample's ``centre`` (3,) (:func:`facetsynth.fit.light_factors.fill_from_neighbours`):
+    a directional light's direction, a point light's direction from the centre. ``lights`` (F, 4) homogeneous."""
+    directions, _ = light_geometry(np.asarray(centre, float)[None, None, :], np.asarray(lights, float)[None])
+    return replace(found, rgb=fill_from_neighbours(directions[0, :, :], found.rgb, found.fallback))
 
 
 def _in_shading_frame(rho: np.ndarray, wi: np.ndarray, cos: np.ndarray, albedo: np.ndarray,
