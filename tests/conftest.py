@@ -19,6 +19,43 @@ RGL_FILES = sorted(RGL_DIR.glob("*.bsdf"))
 assert len(RGL_FILES) == 7, f"{RGL_DIR}: expected the seven RGL .bsdf files"
 
 
+def toy_manifest(lights, times=(0.25, 1.0)) -> dict:
+    """A valid manifest of a 4 x 3 capture: one frame per point light at ``lights`` (positions, metres) of unit
+    intensity, an exposure ``frames/{q:04d}_e{e}.exr`` per time of ``times`` each."""
+    return {
+        "version": 1, "units": "m", "sample": {"width": 0.1, "height": 0.1},
+        "camera": {"width": 4, "height": 3, "K": [[100, 0, 1.5], [0, 100, 1], [0, 0, 1]],
+                   "R": [[1, 0, 0], [0, -1, 0], [0, 0, -1]], "t": [0, 0, 1], "distortion": [0, 0, 0, 0, 0]},
+        "saturation": 1.0,
+        "frames": [{"light": {"position": list(p), "intensity": [1, 1, 1]},
+                    "exposures": [{"file": f"frames/{q:04d}_e{e}.exr", "time": t} for e, t in enumerate(times)]}
+                   for q, p in enumerate(lights)],
+    }
+
+
+def exposure_files(manifest: dict) -> list[str]:
+    """Every exposure file a manifest lists, frame by frame."""
+    return [e["file"] for f in manifest["frames"] for e in f["exposures"]]
+
+
+def write_manifest(folder: Path, data) -> Path:
+    """Write ``data`` as the folder's manifest.json (Python's json writes NaN and Infinity literals)."""
+    import json
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "manifest.json").write_text(json.dumps(data))
+    return folder / "manifest.json"
+
+
+def write_toy_capture(folder: Path, manifest: dict, value: float = 0.2) -> Path:
+    """``manifest`` (a :func:`toy_manifest`) and its exposures, 4 x 3 pixels of ``value``, in ``folder``."""
+    import numpy as np
+    from facetsynth.io.fileio import write_exr
+    for name in exposure_files(manifest):
+        write_exr(folder / name, {"RGB": np.full((3, 4, 3), value)})
+    write_manifest(folder, manifest)
+    return folder
+
+
 def hdr_outputs(folder: Path):
     """hdr's outputs in ``folder`` as the workflow lays them out: frames/, manifest.json, metrics.json."""
     from facetsynth.stages import hdr

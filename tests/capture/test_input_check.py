@@ -5,13 +5,14 @@ capture and asserts the one-line error: the file, the JSON path of the key, the 
 """
 
 import copy
-import json
 import logging
 import math
 
 import numpy as np
 import OpenImageIO as oiio
 import pytest
+
+from conftest import exposure_files, toy_manifest, write_manifest, write_toy_capture
 
 from facetsynth.app import cli
 from facetsynth.capture import manifest
@@ -20,36 +21,17 @@ from facetsynth.io.fileio import write_exr
 from facetsynth.stages import hdr
 from facetsynth.stages.capture import check_capture
 
-GOOD = {
-    "version": 1, "units": "m", "sample": {"width": 0.1, "height": 0.1},
-    "camera": {"width": 4, "height": 3, "K": [[100, 0, 1.5], [0, 100, 1], [0, 0, 1]],
-               "R": [[1, 0, 0], [0, -1, 0], [0, 0, -1]], "t": [0, 0, 1], "distortion": [0, 0, 0, 0, 0]},
-    "saturation": 1.0,
-    "frames": [{"light": {"position": [0, 0.1, 0.04], "intensity": [1, 1, 1]},
-                "exposures": [{"file": "frames/0000_e0.exr", "time": 0.25},
-                              {"file": "frames/0000_e1.exr", "time": 1.0}]},
-               {"light": {"position": [0.1, 0, 0.04], "intensity": [1, 1, 1]},
-                "exposures": [{"file": "frames/0001_e0.exr", "time": 0.25},
-                              {"file": "frames/0001_e1.exr", "time": 1.0}]}],
-}
-FILES = [e["file"] for f in GOOD["frames"] for e in f["exposures"]]
+GOOD = toy_manifest([(0, 0.1, 0.04), (0.1, 0, 0.04)])
+FILES = exposure_files(GOOD)
 
 
 @pytest.fixture
 def capture(tmp_path):
     """A valid 4x3 capture of two frames of two exposures each; returns its folder."""
-    folder = tmp_path / "cap"
-    for name in FILES:
-        write_exr(folder / name, {"RGB": np.full((3, 4, 3), 0.2)})
-    write(folder, GOOD)
-    return folder
+    return write_toy_capture(tmp_path / "cap", GOOD)
 
 
-def write(folder, data):
-    """Write ``data`` as the folder's manifest.json (Python's json writes NaN and Infinity literals)."""
-    folder.mkdir(parents=True, exist_ok=True)
-    (folder / "manifest.json").write_text(json.dumps(data))
-    return folder / "manifest.json"
+write = write_manifest
 
 
 def mutated(folder, mutate):

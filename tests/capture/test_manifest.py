@@ -1,23 +1,17 @@
 """The capture manifest schema: good and bad manifests, clear errors naming the file."""
 
 import copy
-import json
 
 import numpy as np
 import pytest
+
+from conftest import toy_manifest, write_manifest
 
 from facetsynth.capture import manifest
 from facetsynth.io.errors import InputError
 from facetsynth.io.fileio import write_exr
 
-GOOD = {
-    "version": 1, "units": "m", "sample": {"width": 0.1, "height": 0.1},
-    "camera": {"width": 4, "height": 3, "K": [[100, 0, 1.5], [0, 100, 1], [0, 0, 1]],
-               "R": [[1, 0, 0], [0, -1, 0], [0, 0, -1]], "t": [0, 0, 1], "distortion": [0, 0, 0, 0, 0]},
-    "saturation": 1.0,
-    "frames": [{"light": {"position": [0, 0.1, 0.04], "intensity": [1, 1, 1]},
-                "exposures": [{"file": "frames/0000_e0.exr", "time": 0.25}]}],
-}
+GOOD = toy_manifest([(0, 0.1, 0.04)], times=(0.25,))
 
 
 @pytest.fixture
@@ -26,9 +20,7 @@ def capture(tmp_path):
     return tmp_path
 
 
-def write(folder, data):
-    (folder / "manifest.json").write_text(json.dumps(data))
-    return folder / "manifest.json"
+write = write_manifest
 
 
 def test_good_manifest_loads_with_absolute_frame_paths_and_unknown_fields(capture):

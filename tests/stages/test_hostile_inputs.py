@@ -19,34 +19,21 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from conftest import REPO, hdr_outputs
+from conftest import REPO, exposure_files, hdr_outputs, toy_manifest, write_manifest, write_toy_capture
 
 from facetsynth.app import cli
 from facetsynth.io.errors import InputError
 from facetsynth.io.fileio import read_exr, read_frame, read_json, read_yaml, write_exr
 from facetsynth.stages import hdr
 
-GOOD = {
-    "version": 1, "units": "m", "sample": {"width": 0.1, "height": 0.1},
-    "camera": {"width": 4, "height": 3, "K": [[100, 0, 1.5], [0, 100, 1], [0, 0, 1]],
-               "R": [[1, 0, 0], [0, -1, 0], [0, 0, -1]], "t": [0, 0, 1], "distortion": [0, 0, 0, 0, 0]},
-    "saturation": 1.0,
-    "frames": [{"light": {"position": list(p), "intensity": [1, 1, 1]},
-                "exposures": [{"file": f"frames/{q:04d}_e0.exr", "time": 0.25},
-                              {"file": f"frames/{q:04d}_e1.exr", "time": 1.0}]}
-               for q, p in enumerate([(0, 0.1, 0.04), (0.1, 0, 0.04), (-0.1, -0.1, 0.04)])],
-}
-FILES = [e["file"] for f in GOOD["frames"] for e in f["exposures"]]
+GOOD = toy_manifest([(0, 0.1, 0.04), (0.1, 0, 0.04), (-0.1, -0.1, 0.04)])   # lights spanning an area, as hdr needs
+FILES = exposure_files(GOOD)
 
 
 @pytest.fixture
 def toy(tmp_path):
     """A valid 4x3 capture of three frames (lights spanning an area, as hdr needs) of two exposures."""
-    folder = tmp_path / "cap"
-    for name in FILES:
-        write_exr(folder / name, {"RGB": np.full((3, 4, 3), 0.2)})
-    write(folder, GOOD)
-    return folder
+    return write_toy_capture(tmp_path / "cap", GOOD)
 
 
 @pytest.fixture(scope="module")
@@ -59,10 +46,7 @@ def tiny(tmp_path_factory):
     return folder
 
 
-def write(folder, data):
-    folder.mkdir(parents=True, exist_ok=True)
-    (folder / "manifest.json").write_text(json.dumps(data))
-    return folder / "manifest.json"
+write = write_manifest
 
 
 def mutated(folder, mutate, base=None):

@@ -17,7 +17,6 @@ Conventions shared by every figure:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
@@ -428,7 +427,6 @@ def unwrapped_brdf_figure(data: np.ndarray, model: np.ndarray, title: str = "", 
 NDF_POINTS = ((0.5, 0.5), (0.25, 0.5), (0.5, 0.25), (0.3, 0.7))   # (x, y) fractions of the sample
 
 
-@dataclass(frozen=True)
 class FigureSettings(StageSettings):
     """The report figures' choices (rule params, workflow/rules/report.smk)."""
 

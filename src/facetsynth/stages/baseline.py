@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +20,6 @@ from .common import TILE_POINTS, RectifiedCapture, RuleFiles, StageSettings, par
 log = logging.getLogger(__name__)
 
 
-@dataclass(frozen=True)
 class Inputs(RuleFiles):
     """Rule ``baseline_ward``'s inputs: separate's geometry, kd, specular samples and their validity, resample's
     specular colour; in the join of scatter parts (``scatter.tiles`` > 1) also the parts' records (None: the
@@ -34,7 +32,6 @@ class Inputs(RuleFiles):
     records: list[Path] | None = None
 
 
-@dataclass(frozen=True)
 class Outputs(RuleFiles):
     """Rule ``baseline_ward``'s outputs: the Ward model folder and the metrics; rule ``baseline_ward_part``'s: its
     ``record`` (the others None)."""
@@ -43,7 +40,6 @@ class Outputs(RuleFiles):
     record: Path | None = None
 
 
-@dataclass(frozen=True)
 class Settings(StageSettings):
     """The stage's knobs: config ``baseline`` (workflow/schemas/config.schema.yaml)."""
     max_nfev: int = 200    # LM iterations (trial steps) per start and point

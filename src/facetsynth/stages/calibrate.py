@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +20,6 @@ from .common import StageSettings
 log = logging.getLogger(__name__)
 
 
-@dataclass(frozen=True)
 class TargetSettings(StageSettings):
     """Config section ``calibration`` (target rendering of a virtual rig)."""
 
@@ -33,7 +31,6 @@ class TargetSettings(StageSettings):
     albedo: float = 0.95            # the white reference
 
 
-@dataclass(frozen=True)
 class CalibrateSettings(StageSettings):
     """Config section ``calibration`` (fitting)."""
 

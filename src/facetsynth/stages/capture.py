@@ -28,7 +28,6 @@ CHECK_THREADS = min(4, os.cpu_count() or 1)
 """Threads reading a capture's exposures in :func:`inspect_capture` (EXR decoding releases the GIL)."""
 
 
-@dataclass(frozen=True)
 class Inputs(RuleFiles):
     """Rule ``capture``'s inputs: the sample sheet's ``path`` (a scene, a capture folder, an ``.lp`` file or a rig
     description), the files it names (``sources``) and, for a virtual sample, its rig description."""
@@ -37,13 +36,11 @@ class Inputs(RuleFiles):
     rig: Path | None = None
 
 
-@dataclass(frozen=True)
 class Outputs(RuleFiles):
     """Rule ``capture``'s output: the capture folder (``manifest.json`` + frames)."""
     capture: Path
 
 
-@dataclass(frozen=True)
 class Settings(StageSettings):
     """The rule's params: the sample sheet's ``source`` and ``rotation_deg``, the sample's rig description,
     config ``seed`` and ``virtual.noise``."""

@@ -34,7 +34,6 @@ TURN_SPREAD = 0.5    # representative lowers their eq. 15 distance by 20 % (medi
                      # more than half a sector (standard deviation): then each point is that representative turned
 
 
-@dataclass(frozen=True)
 class Inputs(RuleFiles):
     """Rule ``cluster``'s inputs: separate's geometry, partial_ndf's tables and resample's grid; separate's
     samples (without them, None, each representative's partial NDF is its own) and kd map (None: points are
@@ -47,7 +46,6 @@ class Inputs(RuleFiles):
     kd: Path | None = None
 
 
-@dataclass(frozen=True)
 class Outputs(RuleFiles):
     """Rule ``cluster``'s outputs: per point its cluster, eq. 18 neighbours and weights and turn; the
     representatives, their pooled partial NDFs; the stage's figures."""
@@ -61,7 +59,6 @@ class Outputs(RuleFiles):
     metrics: Path
 
 
-@dataclass(frozen=True)
 class Settings(StageSettings):
     """The stage's knobs: config ``cluster``, the top-level ``seed`` and ``partial_ndf``'s eqs. 11 and 5 for
     the pooled representative partial NDFs (workflow/schemas/config.schema.yaml)."""

@@ -6,7 +6,7 @@ import logging
 from dataclasses import dataclass, fields
 from functools import cached_property
 from pathlib import Path
-from typing import ClassVar
+from typing import ClassVar, dataclass_transform
 
 import numpy as np
 
@@ -20,7 +20,17 @@ from ..models.render import light_geometry, towards
 TILE_POINTS = 256  # points per tile: bounds the memory of every per-point stage
 
 
-class StageSettings:
+@dataclass_transform(frozen_default=True)
+class FrozenFields:
+    """Base whose every subclass is a frozen dataclass, without a decorator of its own: a stage's ``Inputs``,
+    ``Outputs`` and ``Settings`` are declared as their fields alone."""
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        dataclass(frozen=True)(cls)
+
+
+class StageSettings(FrozenFields):
     """Base of a stage's frozen settings dataclass: one field per key of its config section (and of the keys
     its rule takes from other sections, under their config names); the defaults are the config's
     (tests/stages/test_config.py checks config/config.yaml against them). ``MEASURED`` names the fields that are
@@ -40,7 +50,7 @@ def _frozen(value):
     return tuple(_frozen(v) for v in value) if isinstance(value, list) else value
 
 
-class RuleFiles:
+class RuleFiles(FrozenFields):
     """Base of a stage's ``Inputs`` and ``Outputs`` frozen dataclasses: one field per named file of its rule
     (a list of paths for a named list); a field with a default may be missing from the rule."""
 
@@ -51,7 +61,6 @@ class RuleFiles:
         return cls(**{f.name: _path(named[f.name]) for f in fields(cls) if f.name in named})
 
 
-@dataclass(frozen=True)
 class ModelOutputs(RuleFiles):
     """The outputs of the rules that write the SVBRDF (``params``: the pipeline's, refine's start; ``refine``: the
     fitted one a user takes away): its folder and the fit's figures."""

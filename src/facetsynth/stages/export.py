@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -28,7 +27,6 @@ from .validate import diffuse_truth, supersample, true_rig, trusted_scores, view
 log = logging.getLogger(__name__)
 
 
-@dataclass(frozen=True)
 class Inputs(RuleFiles):
     """Rule ``export_gltf``'s inputs: the SVBRDF folder; for a sample with held-out truth (else None) the
     held-out captures (one folder per view of ``Settings.views``), validate's metrics and the truth's rig."""
@@ -38,14 +36,12 @@ class Inputs(RuleFiles):
     rig: Path | None = None
 
 
-@dataclass(frozen=True)
 class Outputs(RuleFiles):
     """Rule ``export_gltf``'s outputs: the glTF folder and the export's figures."""
     gltf: Path
     metrics: Path
 
 
-@dataclass(frozen=True)
 class Settings(StageSettings):
     """The export's knobs: measured defaults, not in the workflow's config (nothing there to trade yet); and the
     rule's ``views``, the names of the held-out views in the order of ``Inputs.heldout``."""

@@ -43,13 +43,11 @@ from .common import RuleFiles, StageSettings, flag_degenerate
 log = logging.getLogger(__name__)
 
 
-@dataclass(frozen=True)
 class Inputs(RuleFiles):
     """Rule ``hdr``'s input: capture's folder (``manifest.json`` and the exposures)."""
     capture: Path
 
 
-@dataclass(frozen=True)
 class Outputs(RuleFiles):
     """Rule ``hdr``'s outputs: the merged frames' folder, their manifest and the stage's figures."""
     frames: Path
@@ -57,7 +55,6 @@ class Outputs(RuleFiles):
     metrics: Path
 
 
-@dataclass(frozen=True)
 class Settings(StageSettings):
     """The stage's knobs: config ``hdr`` (workflow/schemas/config.schema.yaml)."""
     floor_sigmas: float = 3.0         # exposure values below floor_sigmas x read noise are ignored

@@ -10,7 +10,6 @@ predictions against.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
 from pathlib import Path
 
 from ..truth import virtual_rig
@@ -21,20 +20,17 @@ from .validate import heldout_rig
 log = logging.getLogger(__name__)
 
 
-@dataclass(frozen=True)
 class Inputs(RuleFiles):
     """Rule ``heldout_capture``'s inputs: the sample's scene and rig description."""
     scene: Path
     rig: Path
 
 
-@dataclass(frozen=True)
 class Outputs(RuleFiles):
     """Rule ``heldout_capture``'s output: the held-out capture's folder."""
     capture: Path
 
 
-@dataclass(frozen=True)
 class Settings(StageSettings):
     """The stage's knobs: the view (the rule's params, from config ``validate.views``; default the paper's
     Fig. 9 view), config ``validate``'s held-out lights and the top-level ``seed``."""

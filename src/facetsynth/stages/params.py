@@ -231,7 +231,6 @@ def fit_eta(model: SVBRDF, w18: np.ndarray, samples: dict[str, np.ndarray], mate
     return eta, fitted, records, eta_rep, interval_rep
 
 
-@dataclass(frozen=True)
 class Inputs(RuleFiles):
     """Rule ``params``'s inputs: separate's geometry, kd and samples, resample's specular colour, cluster's
     representatives and eq. 18 neighbours and weights (and each point's NDF turn), synthesize's completed
@@ -254,7 +253,6 @@ class Inputs(RuleFiles):
 Outputs = ModelOutputs      # rule params's outputs: the pipeline's SVBRDF folder (refine's start), the figures
 
 
-@dataclass(frozen=True)
 class Settings(StageSettings):
     """The stage's knobs: config ``params`` and ``partial_ndf.grazing_deg`` (workflow/schemas/config.schema.yaml)."""
     eta_min: float = params.ETA_BOUNDS[0]     # eta is bounded to [eta_min, eta_max] in eq. 19's LM fit

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +20,6 @@ from .common import TILE_POINTS, RectifiedCapture, RuleFiles, StageSettings, par
 log = logging.getLogger(__name__)
 
 
-@dataclass(frozen=True)
 class Inputs(RuleFiles):
     """Rule ``partial_ndf``'s inputs: separate's geometry, resample's slices and grid; in the join of scatter parts
     (``scatter.tiles`` > 1) also the parts' NDF tables and records (None: the whole capture, or one part)."""
@@ -32,7 +30,6 @@ class Inputs(RuleFiles):
     records: list[Path] | None = None
 
 
-@dataclass(frozen=True)
 class Outputs(RuleFiles):
     """Rule ``partial_ndf``'s outputs: the NDF table (D and W) and the metrics; rule ``partial_ndf_part``'s: its
     points' NDF table and its ``record`` (no metrics)."""
@@ -41,7 +38,6 @@ class Outputs(RuleFiles):
     record: Path | None = None
 
 
-@dataclass(frozen=True)
 class Settings(StageSettings):
     """The stage's knobs: config ``partial_ndf`` (workflow/schemas/config.schema.yaml)."""
     per_point_view: bool = True           # o(x) per point, or the paper's view at the sample centre

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import logging
 import os
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -22,14 +21,12 @@ from .common import RuleFiles, StageSettings
 log = logging.getLogger(__name__)
 
 
-@dataclass(frozen=True)
 class Inputs(RuleFiles):
     """Rule ``rectify``'s inputs: hdr's merged frames (read through the manifest) and their manifest."""
     manifest: Path
     frames: Path | None = None
 
 
-@dataclass(frozen=True)
 class Outputs(RuleFiles):
     """Rule ``rectify``'s outputs: the rectified frames' folder, the geometry and the stage's figures."""
     frames: Path
@@ -37,7 +34,6 @@ class Outputs(RuleFiles):
     metrics: Path
 
 
-@dataclass(frozen=True)
 class Settings(StageSettings):
     """The stage's knobs: config ``rectify`` (workflow/schemas/config.schema.yaml; ``resolution`` from the preset)."""
     resolution: int | str = "auto"   # grid cells across the sample width; auto: as many as camera pixels see it

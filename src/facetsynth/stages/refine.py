@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, fields, replace
+from dataclasses import fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -44,7 +44,6 @@ log = logging.getLogger(__name__)
 FIGURE_POINTS = 4096   # points (evenly strided) the fit's own figures are measured on
 
 
-@dataclass(frozen=True)
 class Inputs(RuleFiles):
     """Rule ``refine``'s inputs: params' SVBRDF folder, separate's geometry and samples."""
     model: Path
@@ -56,7 +55,6 @@ class Inputs(RuleFiles):
 Outputs = ModelOutputs      # rule refine's outputs: the fitted SVBRDF folder and the fit's figures
 
 
-@dataclass(frozen=True)
 class Settings(StageSettings):
     """The stage's knobs: config ``refine`` (workflow/schemas/config.schema.yaml)."""
     ridge: float = 1e-3               # weight of the pipeline's kd, ks as a prior, relative to the point's samples

@@ -13,7 +13,6 @@ recorded with its reason in ``resample/metrics.json``.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -53,7 +52,6 @@ def measured_sharpness(capture: RectifiedCapture, spec, ok, grazing_deg: float) 
             "broad_half_width_deg": float(np.median(broad[lobed])) if lobed.any() else None}
 
 
-@dataclass(frozen=True)
 class Inputs(RuleFiles):
     """Rule ``resample``'s inputs: separate's geometry, specular samples and their validity; in the join of scatter
     parts (``scatter.tiles`` > 1) also the parts' slices and records (None: the whole capture, or one part)."""
@@ -64,7 +62,6 @@ class Inputs(RuleFiles):
     records: list[Path] | None = None
 
 
-@dataclass(frozen=True)
 class Outputs(RuleFiles):
     """Rule ``resample``'s outputs: the slices' folder, the specular colour, the grid and the metrics; rule
     ``resample_part``'s: its points' slices and its ``record`` (the others None)."""
@@ -75,7 +72,6 @@ class Outputs(RuleFiles):
     record: Path | None = None
 
 
-@dataclass(frozen=True)
 class Settings(StageSettings):
     """The stage's knobs: config ``resample`` and ``partial_ndf.grazing_deg`` (workflow/schemas/config.schema.yaml)."""
     cells_per_lobe: float = 1.3               # elevation rings per narrow lobe half-width

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import copy
 import logging
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -55,7 +54,6 @@ DEFINITION = ("relative L2 = sqrt(sum (pred - meas)^2 / sum meas^2) over the pix
               "(facetsynth.evaluation.selfcheck)")
 
 
-@dataclass(frozen=True)
 class Inputs(RuleFiles):
     """Rule ``selfcheck``'s inputs: the fitted SVBRDF folder, hdr's manifest and its frames folder (the files the
     manifest lists: a dependency, read through the manifest; None outside the workflow), separate's geometry
@@ -66,14 +64,12 @@ class Inputs(RuleFiles):
     geometry: Path | None = None
 
 
-@dataclass(frozen=True)
 class Outputs(RuleFiles):
     """Rule ``selfcheck``'s outputs: the scores and the folder of the worst frames' pictures."""
     metrics: Path
     images: Path
 
 
-@dataclass(frozen=True)
 class Settings(StageSettings):
     """The stage's knobs: config ``selfcheck`` (workflow/schemas/config.schema.yaml)."""
     heldout_every: int = 10    # every 10th light is held out of the fit (0: none) ...

@@ -20,7 +20,7 @@ from __future__ import annotations
 import copy
 import logging
 import os
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import NamedTuple
 
@@ -68,14 +68,12 @@ FACTORS_DEFINITION = ("per light, the RGB factor f by which its intensity differ
 MIN_COS = 1e-3
 
 
-@dataclass(frozen=True)
 class Inputs(RuleFiles):
     """Rule ``separate``'s inputs: rectify's geometry and its frames (read through the geometry's file names)."""
     geometry: Path
     frames: Path | None = None
 
 
-@dataclass(frozen=True)
 class Outputs(RuleFiles):
     """Rule ``separate``'s outputs: kd, the specular residual and its validity, the stage's figures; the shading
     normals and rectify's geometry with them (the later stages' geometry; None: not written)."""
@@ -87,7 +85,6 @@ class Outputs(RuleFiles):
     normals: Path | None = None
 
 
-@dataclass(frozen=True)
 class Settings(StageSettings):
     """The stage's knobs: config ``separate`` (workflow/schemas/config.schema.yaml)."""
     threshold: float = 0.05   # eq. 9: samples darker than threshold x the point's average intensity are left out

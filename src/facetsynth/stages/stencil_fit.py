@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -46,7 +45,6 @@ from .common import RectifiedCapture, RuleFiles, StageSettings
 log = logging.getLogger(__name__)
 
 
-@dataclass(frozen=True)
 class Inputs(RuleFiles):
     """Rule ``stencil_fit``'s inputs: the fitted SVBRDF folder, cluster's labels, separate's geometry (the truth
     of a virtual capture)."""
@@ -55,7 +53,6 @@ class Inputs(RuleFiles):
     geometry: Path
 
 
-@dataclass(frozen=True)
 class Outputs(RuleFiles):
     """Rule ``stencil_fit``'s outputs: the models folder (stencil.json, the BRDF Explorer shaders) and the
     stage's figures."""
@@ -63,7 +60,6 @@ class Outputs(RuleFiles):
     metrics: Path
 
 
-@dataclass(frozen=True)
 class Settings(StageSettings):
     """The stage's knobs: none (the stencil fit chooses its anisotropy modes from the data)."""
 

@@ -34,7 +34,6 @@ from .common import RectifiedCapture, RuleFiles, StageSettings, flag_degenerate,
 log = logging.getLogger(__name__)
 
 
-@dataclass(frozen=True)
 class Inputs(RuleFiles):
     """Rule ``synthesize``'s inputs: the geometry, kd, partial NDFs and direction grid of the sample, the
     cluster stage's representatives (their pooled partial NDFs, the points' eq. 18 neighbours, weights and
@@ -53,7 +52,6 @@ class Inputs(RuleFiles):
     rotation_ndf: tuple = ()
 
 
-@dataclass(frozen=True)
 class Outputs(RuleFiles):
     """Rule ``synthesize``'s outputs: the completed NDFs (R, T, F), their W before push-pull, the cosine
     of the Fresnel factor each cell carries, the grid and the stage's figures."""
@@ -64,7 +62,6 @@ class Outputs(RuleFiles):
     metrics: Path
 
 
-@dataclass(frozen=True)
 class Settings(StageSettings):
     """The stage's knobs: config ``synthesize`` (workflow/schemas/config.schema.yaml)."""
     search: str = "exact"             # exact: every exemplar at every rotation (FFT); ann: sec. 5.3's pruning

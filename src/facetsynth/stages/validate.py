@@ -14,7 +14,6 @@ from __future__ import annotations
 import copy
 import csv
 import logging
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -50,7 +49,6 @@ NORMALISATION = ("over the sample's pixels (every sub-pixel on the sample), line
 MAX_FRAME_PSNR_DB = 100.0
 
 
-@dataclass(frozen=True)
 class Inputs(RuleFiles):
     """Rule ``validate``'s inputs: the fitted SVBRDF folder, the held-out captures (one folder per view of
     ``Settings.views``, in that order), the Ward baseline's folder (None: ours alone), params' metrics (a
@@ -63,7 +61,6 @@ class Inputs(RuleFiles):
     rig: Path | None = None
 
 
-@dataclass(frozen=True)
 class Outputs(RuleFiles):
     """Rule ``validate``'s outputs: the scores, the side-by-side images' folder and the predictions' folder."""
     metrics: Path
@@ -71,7 +68,6 @@ class Outputs(RuleFiles):
     predictions: Path
 
 
-@dataclass(frozen=True)
 class Settings(StageSettings):
     """The stage's knobs: the rule's params (``images_per_view`` is config ``validate``'s; ``views`` its views'
     names; the benchmarks are files, read when the job runs)."""
