@@ -39,7 +39,7 @@ def test_one_model_per_material_with_the_true_mode_count_and_axis(repo, scene, c
     """satin: two thread directions, one mode each, at phi_a 90 and 0 deg; card: isotropic, no mode."""
     model, reps, members, truth, maps = truth_svbrdf(repo, scene)
     # the Kurt baseline (1-8 s per cluster) on satin's two clusters only
-    records, shaders = fit_clusters(model, reps, members, truth, maps, kurt=scene == "satin")
+    records, shaders = fit_clusters(model, reps, members, truth, maps, kurt_at_most=2 if scene == "satin" else 0)
     metrics = cluster_metrics(records, ground_truth=True)
     assert metrics["clusters"] == clusters and metrics["mode_counts"] == modes
     assert metrics["mode_count_accuracy"] == 1.0
@@ -57,5 +57,22 @@ def test_one_model_per_material_with_the_true_mode_count_and_axis(repo, scene, c
         for r in records:
             assert all(np.isfinite(r["kurt"]["scores"][k]) for k in ("delta_e", "psnr_db", "fit_seconds"))
         assert metrics["kurt_delta_e_median"] > 0 and metrics["kurt_fit_seconds_median"] > 0
-        assert 0 <= metrics["stencil_delta_e_at_most_kurt"] <= 1
+        assert 0 <= metrics["stencil_delta_e_at_most_kurt"] <= 1 and metrics["kurt_clusters"] == 2
         assert metrics["vs_truth"]["kurt"]["delta_e_median"] > 0
+
+
+def test_the_kurt_comparison_covers_the_clusters_it_was_fitted_to():
+    """The Kurt baseline is fitted to at most KURT_CLUSTERS clusters (a comparison; 1-8 s each): its medians and
+    the share where the stencil's Delta E is at most Kurt's are over those clusters alone."""
+    def record(stencil_de, kurt_de=None):
+        scores = {"delta_e": stencil_de, "rmse": 0.1, "psnr_db": 30.0, "ssim": 0.9, "fit_seconds": 0.1}
+        r = {"stencil": {"scores": scores, "n_modes": 0}}
+        if kurt_de is not None:
+            r["kurt"] = {"scores": dict(scores, delta_e=kurt_de, fit_seconds=2.0)}
+        return r
+    metrics = cluster_metrics([record(1.0, 2.0), record(9.0), record(3.0, 2.0), record(9.0), record(1.0, 1.5)],
+                              ground_truth=False)
+    assert (metrics["clusters"], metrics["kurt_clusters"]) == (5, 3)
+    assert metrics["stencil_delta_e_at_most_kurt"] == pytest.approx(2 / 3)
+    assert metrics["kurt_delta_e_median"] == 2.0 and metrics["delta_e_median"] == 3.0
+    assert cluster_metrics([record(1.0)], ground_truth=False)["stencil_delta_e_at_most_kurt"] is None
