@@ -40,8 +40,7 @@ def variant_errors(geometry: str | Path, slice_path: str | Path, grid_path: str 
     if index.size == 0:
         return {name: None for name in variants}
     s = np.asarray(SupportTable(slice_path).rows("values")[index], float)
-    from ..stages.partial_ndf import light_coverage    # here: that stage imports this module
-    c = light_coverage(capture, grid)(index)
+    c = capture.light_coverage(grid)(index)
     maps = truth.take(index)
     result = {}
     for name, (per_point, constrain) in variants.items():

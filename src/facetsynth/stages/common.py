@@ -14,8 +14,12 @@ from ..capture import manifest
 from ..io.errors import InputError
 from ..io.fileio import read_json
 from ..fit.normals import shading_frames, to_local
+from ..geometry.coverage import LightFootprint
+from ..geometry.grid import DirectionGrid
 from ..geometry.plane import PlaneGrid
 from ..models.render import light_geometry, towards
+
+log = logging.getLogger(__name__)
 
 TILE_POINTS = 256  # points per tile: bounds the memory of every per-point stage
 
@@ -133,6 +137,18 @@ class RectifiedCapture:
     def tilted(self) -> bool:
         """Whether any point's shading normal differs from +z."""
         return self.normals is not None and bool(np.any(self.normals[:, :2] != 0))
+
+    def light_coverage(self, grid: DirectionGrid):
+        """``coverage(points)``: (len, T, F) how well the capture's lights sampled each grid direction from
+        each of ``points`` (point indices), as W of eq. 12 needs it (:class:`LightFootprint`)."""
+        footprint = LightFootprint.from_lights(self.lights)
+        if footprint.at_infinity:
+            log.info("directional lights: %d, spacing %.3f on their gnomonic plane z = 1", len(self.lights),
+                     footprint.spacing)
+        else:
+            log.info("lights: %d, spacing %.1f mm, plane z = %.1f mm", len(self.lights), 1e3 * footprint.spacing,
+                     1e3 * footprint.height)
+        return lambda points: footprint.on_grid(self.points[points], grid, self.frames(points))
 
     def light_directions(self, index) -> tuple[np.ndarray, np.ndarray]:
         """i (p, F, 3) and |P - x|^2 (p, F) (1 for directional lights) of the points ``index``, eq. 8."""

@@ -8,7 +8,6 @@ from pathlib import Path
 import numpy as np
 
 from ..fit import partial_ndf
-from ..geometry.coverage import LightFootprint
 from ..io.fileio import atomic_path, read_json, write_json
 from ..io.frames import imap
 from ..geometry.grid import DirectionGrid
@@ -50,19 +49,6 @@ class Settings(StageSettings):
             grid: DirectionGrid) -> partial_ndf.PartialNDF:
         return partial_ndf.fit(slice_, coverage, view, grid, self.shadowing, self.grazing_deg, self.tolerance,
                                self.max_iterations)
-
-
-def light_coverage(capture: RectifiedCapture, grid: DirectionGrid):
-    """``coverage(points)``: (len, T, F) how well the capture's lights sampled each grid direction from
-    each of ``points`` (capture point indices), as W of eq. 12 needs it (:class:`LightFootprint`)."""
-    footprint = LightFootprint.from_lights(capture.lights)
-    if footprint.at_infinity:
-        log.info("directional lights: %d, spacing %.3f on their gnomonic plane z = 1", len(capture.lights),
-                 footprint.spacing)
-    else:
-        log.info("lights: %d, spacing %.1f mm, plane z = %.1f mm", len(capture.lights), 1e3 * footprint.spacing,
-                 1e3 * footprint.height)
-    return lambda points: footprint.on_grid(capture.points[points], grid, capture.frames(points))
 
 
 def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threads: int = 1, *,
@@ -127,7 +113,7 @@ def _fit_points(capture: RectifiedCapture, grid: DirectionGrid, slice_path, poin
     """Fit the partial NDFs of ``points`` (a slice of the capture's points, whole tiles) into a (len, T, F)
     support table, tiles on ``threads`` threads; returns the points' iterations, convergence and the
     scored points' errors."""
-    table, coverage = SupportTable(slice_path).rows("values"), light_coverage(capture, grid)
+    table, coverage = SupportTable(slice_path).rows("values"), capture.light_coverage(grid)
     truth = truth_of(capture)
     scored = scored_points(capture, truth)
     n = points.stop - points.start
