@@ -153,12 +153,13 @@ def _median(values):
 def cluster_metrics(clusters: list[dict], ground_truth: bool) -> dict:
     """Median scores over clusters for the stencil model (``delta_e_median`` ...) and the Kurt
     baseline (``kurt_delta_e_median`` ..., over the ``kurt_clusters`` it was fitted to) against the fitted
-    SVBRDF, both fit times, the share of those clusters where the stencil's Delta E is at most Kurt's, the mode-count histogram and, with truth,
-    both models' (and the SVBRDF's) median scores against the true BRDF and the axis accuracy."""
+    SVBRDF, both fit times, the share of those clusters where the stencil's Delta E is at most Kurt's, the
+    mode-count histogram and, with truth, both models' (and the SVBRDF's) median scores against the true BRDF
+    and the axis accuracy."""
     scores = [c["stencil"]["scores"] for c in clusters]
     kurt = [c["kurt"]["scores"] for c in clusters if "kurt" in c]
-    stencil_vs_kurt = [c["stencil"]["scores"]["delta_e"] <= c["kurt"]["scores"]["delta_e"] for c in clusters
-                       if "kurt" in c]
+    stencil_vs_kurt = [c["stencil"]["scores"]["delta_e"] <= c["kurt"]["scores"]["delta_e"]
+                       for c in clusters if "kurt" in c]
     modes = [c["stencil"]["n_modes"] for c in clusters]
     metrics = {"ground_truth": ground_truth, "clusters": len(clusters), "kurt_clusters": len(kurt),
                "mode_counts": {str(n): modes.count(n) for n in sorted(set(modes))},
