@@ -108,7 +108,7 @@ def shading_frames(normal: np.ndarray) -> np.ndarray:
 
 def to_local(frames: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Directions v (..., 3) in the frames (..., 3, 3) of :func:`shading_frames` (broadcast over ...)."""
-    return np.einsum("...ij,...j->...i", frames, v)
+    return (frames @ v[..., None])[..., 0]
 
 
 # ---------------------------------------------------------------------------------------------------------------

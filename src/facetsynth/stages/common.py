@@ -110,10 +110,13 @@ class RectifiedCapture:
                    truth_scene=None if truth is None else (path.parent / truth).resolve(),
                    normals=None if "normals" not in g else np.load(path.parent / g["normals"]).astype(float))
 
-    @property
+    @cached_property
     def points(self) -> np.ndarray:
-        """(P, 3) world positions of the points, row-major over the grid."""
-        return self.grid.points3d().reshape(-1, 3)
+        """(P, 3) world positions of the points, row-major over the grid (made once: every tile of every
+        stage indexes it; read-only, as it is shared)."""
+        points = self.grid.points3d().reshape(-1, 3)
+        points.flags.writeable = False
+        return points
 
     @property
     def n_points(self) -> int:
