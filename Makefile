@@ -59,7 +59,7 @@ lint: $(VENV)/.installed-test
 	BIN=$(BIN) .ci/lint
 
 test-scenes: $(VENV)/.installed-test
-	$(BIN)/python -m pytest -q -m scenes
+	$(BIN)/python -m pytest -q -m scenes -n $(CORES) --dist loadfile
 
 test-cluster: $(VENV)/.installed-cluster
 	bash tests/cluster/install.sh
