@@ -10,6 +10,7 @@ import pytest
 from facetsynth.io.pages import small_pages
 
 small_pages()   # before the test modules import numpy; the workflows the tests run inherit it
+
 REPO = Path(__file__).resolve().parents[1]
 # The test folders mirror the package's (tests/fit/ tests facetsynth.fit, ...). A test module imports another's
 # helpers by its name (``from test_grid import sph``), as when they were one folder: pytest puts the folder of

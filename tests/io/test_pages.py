@@ -3,6 +3,7 @@
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -21,5 +22,6 @@ def test_the_command_allocates_on_small_pages_unless_the_user_sets_the_variable(
 
 
 def test_the_workflow_calls_it_before_its_jobs_start():
-    text = (os.path.dirname(__file__) + "/../../workflow/rules/common.smk")
-    assert "\nsmall_pages()" in open(text).read()
+    """Snakemake's jobs inherit the environment of the Snakemake process that parsed the Snakefile."""
+    common = Path(__file__).resolve().parents[2] / "workflow" / "rules" / "common.smk"
+    assert "\nsmall_pages()" in common.read_text()
