@@ -15,7 +15,8 @@
 #                the frames (120 ... 2600 at 128^2): results/bench/scale.csv and scale.png (about 35 min; each
 #                run's frames and tables are deleted once its figures are recorded: 800^2 writes ~22 GB);
 #                restrict with make bench-scale SCALE_ARGS="--points 64 128 256 --frames 120 480"
-#   make bench-real - facetsynth against the per-pixel fits RTI users rely on (Lambert, PTM, HSH2, HSH3) on the
+#   make bench-real - facetsynth against the per-pixel fits RTI users rely on (Lambert, PTM, HSH2, HSH3; HSH3
+#                fitted to the 8-bit codes too, as RTIBuilder and relight fit it) on the
 #                real light-dome photos of config/samples-rti.tsv (read from ../shared/data/rti, never copied):
 #                relative L2 on the fitting and held-out lights, fit time and memory in
 #                results/bench-real/table.md and table.csv (about 17 min on 2 cores; not run by CI);

@@ -229,7 +229,8 @@ def test_bench_scale_records_a_run_before_pruning_it(tmp_path, repo):
 def test_real_rows_and_table_from_a_results_tree(tmp_path):
     """make bench-real's row: facetsynth and the per-pixel fits' relative L2 from the selfcheck's metrics, the
     fit time over FIT_STAGES (capture and hdr included; a scattered stage counts its slowest part), the peak
-    memory, whether facetsynth <= HSH3 on both subsets; and the Markdown table of the rows."""
+    memory, whether facetsynth <= HSH3 (fitted to the linear frames, and to the codes) on both subsets; and the
+    Markdown table of the rows."""
     results = tmp_path / "results"
     root = results / "rti-leaf"
     for k, stage in enumerate(bench.FIT_STAGES):
@@ -237,7 +238,8 @@ def test_real_rows_and_table_from_a_results_tree(tmp_path):
     write_benchmark(root / "benchmarks/resample/1-of-2.tsv", 20.0, 19.0, 3000.0)
     write_benchmark(root / "benchmarks/resample/2-of-2.tsv", 30.0, 29.0, 2500.0)
     write_benchmark(root / "benchmarks/selfcheck.tsv", 500.0, 500.0, 9999.0)     # not a fit stage
-    scores = {"lambert": (0.30, 0.32), "ptm": (0.20, 0.25), "hsh2": (0.15, 0.24), "hsh3": (0.12, 0.26)}
+    scores = {"lambert": (0.30, 0.32), "ptm": (0.20, 0.25), "hsh2": (0.15, 0.24), "hsh3": (0.12, 0.26),
+              "hsh3_codes": (0.10, 0.20)}
     metrics = {"frames": 48, "relit": {"frames": 42, "rel_l2": 0.11}, "heldout": {"frames": 6, "rel_l2": 0.21},
                "baselines": {m: {"relit": r, "heldout": h} for m, (r, h) in scores.items()}}
     (root / "selfcheck").mkdir()
@@ -252,7 +254,7 @@ def test_real_rows_and_table_from_a_results_tree(tmp_path):
     assert row["fit_s"] == pytest.approx(sum(stages.values()) + 30.0)    # resample: join + its slowest part
     assert row["rectify_to_refine_s"] == pytest.approx(row["fit_s"] - stages["capture"] - stages["hdr"])
     assert row["peak_mem_mb"] == 3000.0         # a resample part; selfcheck left out
-    assert row["le_hsh3"] is True
+    assert row["le_hsh3"] is True and row["le_hsh3_codes"] is False     # 0.11 > 0.10, 0.21 > 0.20
 
     metrics["relit"]["rel_l2"] = 0.13           # worse than HSH3 on the fitting lights only
     del metrics["baselines"]["lambert"]         # a fit the metrics lack stays empty
@@ -266,8 +268,8 @@ def test_real_rows_and_table_from_a_results_tree(tmp_path):
     assert len(lines) == 4 and all(line.startswith("| ") or line.startswith("|-") for line in lines)
     assert all(line.count("|") == lines[0].count("|") for line in lines[1:])
     assert "| rti-leaf | 42 / 6 | 0.110 / 0.210 | 0.300 / 0.320 |" in lines[2]
-    assert lines[2].endswith("| 3000 | yes |")
-    assert "| - / - |" in lines[3] and lines[3].endswith("| - | 3000 | no: fitting |")
+    assert lines[2].endswith("| 0.100 / 0.200 | 85 | 3000 | yes | no: fitting, held-out |")
+    assert "| - / - |" in lines[3] and lines[3].endswith("| - | 3000 | no: fitting | no: fitting, held-out |")
     path = bench.write_csv([row, worse], tmp_path / "table.csv", bench.REAL_COLUMNS)
     assert path.read_text().splitlines()[0] == ",".join(bench.REAL_COLUMNS)
 

@@ -410,6 +410,46 @@ def relief_capture(folder):
     return folder / "relief.lp"
 
 
+@pytest.mark.parametrize("declared", ["linear", "srgb"])
+def test_the_selfcheck_fits_hsh3_to_the_codes_as_rti_tools_do(tmp_path, declared):
+    """``hsh3_codes``: HSH 3 fitted to the 8-bit codes, its predictions decoded by the declared transfer and
+    scored on hdr's linear frames. Codes that are an HSH 3 function of the light direction (a + b l_z) are
+    predicted to their rounding from the codes, not from the decoded values; under a linear transfer the
+    two fits are one."""
+    from facetsynth.evaluation.selfcheck import heldout_lights, relit_frames
+    from facetsynth.io.fileio import write_exr
+    from facetsynth.stages import selfcheck
+    directions = spiral_dome(24)
+    a = np.linspace(0.1, 0.3, 5 * 6 * 3).reshape(5, 6, 3)
+    codes = np.stack([np.round(255 * (a + 0.6 * d[2])) for d in directions]).astype(np.uint8)
+    files = [f"img{q:02d}.png" for q in range(len(directions))]
+    for f, c in zip(files, codes):
+        write_png(tmp_path / f, c)
+    write_lp(tmp_path / "dome.lp", files, directions)
+    m = {**manifest.load(tmp_path / "dome.lp"), "transfer": declared}
+    (tmp_path / "capture").mkdir()
+    manifest.save(tmp_path / "capture/manifest.json", m)
+    hdr = {k: v for k, v in m.items() if k not in ("transfer", "black_level")}
+    hdr["frames"] = [{**f, "exposures": [{"file": str(tmp_path / f"{q}.exr"), "time": 1.0}]}
+                     for q, f in enumerate(m["frames"])]
+    for q, c in enumerate(codes):
+        write_exr(tmp_path / f"{q}.exr", {"RGB": transfer.decode(c, declared)})
+    held = heldout_lights(len(directions), 8)
+    subsets = {"relit": relit_frames(held, 1), "heldout": np.flatnonzero(held)}
+    scores = selfcheck.per_pixel_baselines(hdr, held, subsets, np.ones((5, 6), bool),
+                                           selfcheck.declared_codes(tmp_path / "capture/manifest.json"))
+    rel = {kind: {name: s.rel_l2 for name, s in scored.items()} for kind, (scored, _) in scores.items()}
+    if declared == "linear":
+        for name in subsets:
+            assert rel["hsh3_codes"][name] == pytest.approx(rel["hsh3"][name], rel=1e-6)
+    else:   # measured, held out: codes 0.0043 (their rounding to 8 bits), decoded values 0.0053
+        assert rel["hsh3_codes"]["heldout"] < 0.005 and rel["hsh3_codes"]["heldout"] < 0.9 * rel["hsh3"]["heldout"]
+    assert selfcheck.declared_codes(tmp_path / "capture/manifest.json") is not None
+    del m["transfer"]
+    manifest.save(tmp_path / "capture/manifest.json", m)
+    assert selfcheck.declared_codes(tmp_path / "capture/manifest.json") is None    # no declared transfer
+
+
 def test_the_workflow_fits_a_dome_capture(repo, tmp_path):
     from test_workflow import make_workdir, metrics, snakemake
     from facetsynth.stages.common import RectifiedCapture
@@ -431,7 +471,7 @@ def test_the_workflow_fits_a_dome_capture(repo, tmp_path):
     assert np.median(error) < 3.0                            # measured 0.23 (p90 0.34)
     assert np.median(error[tilt > 15]) < 3.0                  # the tilted parts too, not only the flat ones
     check = metrics(workdir, "relief", "selfcheck")
-    assert set(check["baselines"]) == {"lambert", "ptm", "hsh2", "hsh3"}
+    assert set(check["baselines"]) == {"lambert", "ptm", "hsh2", "hsh3", "hsh3_codes"}
     print("selfcheck relit", check["relit"]["rel_l2"], "heldout", check["heldout"]["rel_l2"],
           "baselines", json.dumps(check["baselines"]))
     assert check["relit"]["frames"] == F4 - F4 // 8 and check["heldout"]["frames"] == F4 // 8

@@ -110,6 +110,7 @@ rule selfcheck:
         manifest="results/{sample}/hdr/manifest.json",
         frames="results/{sample}/hdr/frames",
         geometry="results/{sample}/separate/geometry.json",  # the lights' intensities as the fit saw them
+        capture="results/{sample}/capture",  # 8-bit exposures with a declared transfer: HSH 3 on their codes
     output:
         metrics="results/{sample}/selfcheck/metrics.json",
         images=report(

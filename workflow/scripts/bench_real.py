@@ -7,10 +7,10 @@ results/{capture}/selfcheck/metrics.json of every capture of --samples, one capt
 the stage times of one are not shared with another's jobs), with selfcheck={heldout_every: 8,
 relit_every: 1}: every 8th light (from the 4th) held out of the fit, every fitting light relit. Then
 prints and writes results/bench-real/table.md and table.csv (facetsynth.app.bench.REAL_COLUMNS): per capture,
-relative L2 on the fitting / held-out lights of facetsynth, Lambert, PTM, HSH2, HSH3 (the selfcheck's
-baselines, same frames and pixels), facetsynth's fit time (wall seconds of the benchmark files of
+relative L2 on the fitting / held-out lights of facetsynth, Lambert, PTM, HSH2, HSH3 and HSH3 fitted to the
+8-bit codes as RTI tools fit it (the selfcheck's baselines, same frames and pixels), facetsynth's fit time (wall seconds of the benchmark files of
 facetsynth.app.bench.FIT_STAGES: capture and hdr, i.e. reading and linearising the JPEGs, included; the csv
-also has rectify..refine alone) and peak memory, and whether facetsynth <= HSH3 on both subsets. A
+also has rectify..refine alone) and peak memory, and whether facetsynth <= each HSH3 on both subsets. A
 finished run is not repeated (Snakemake finds its outputs up to date), so an interrupted bench resumes.
 
 The photos are read where they are (../shared/data/rti/..., no licence): nothing derived from them is

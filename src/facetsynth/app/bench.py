@@ -378,12 +378,14 @@ def plot(rows: Sequence[dict], path: str | Path, title: str, presets: Sequence[s
 
 # --- real light-dome captures against the per-pixel RTI fits (make bench-real, issue 35) ----------------
 
-#: facetsynth and the per-pixel fits the selfcheck scores on a light dome's capture (its ``baselines``).
-REAL_METHODS = ("facetsynth", "lambert", "ptm", "hsh2", "hsh3")
+#: facetsynth and the per-pixel fits the selfcheck scores on a light dome's capture (its ``baselines``;
+#: ``hsh3_codes``: HSH 3 fitted to the 8-bit codes, as RTIBuilder and relight fit it).
+REAL_METHODS = ("facetsynth", "lambert", "ptm", "hsh2", "hsh3", "hsh3_codes")
 REAL_SUBSETS = ("relit", "heldout")
+REAL_REFERENCES = ("hsh3", "hsh3_codes")   # facetsynth is compared with these on both subsets
 REAL_COLUMNS = (["capture", "frames", "relit_frames", "heldout_frames"]
                 + [f"{m}_{s}" for m in REAL_METHODS for s in REAL_SUBSETS]
-                + ["fit_s", "rectify_to_refine_s", "peak_mem_mb", "le_hsh3"])
+                + ["fit_s", "rectify_to_refine_s", "peak_mem_mb"] + [f"le_{r}" for r in REAL_REFERENCES])
 
 
 def real_row(results: str | Path, capture: str) -> dict:
@@ -393,7 +395,8 @@ def real_row(results: str | Path, capture: str) -> dict:
     FIT_STAGES, capture and hdr (reading and linearising the photos) included, ``rectify_to_refine_s``
     those of PRESET_STAGES, both None when a stage has no benchmark, each stage's wall as ``stage_cost``
     counts it (scatter parts: the slowest); ``peak_mem_mb`` the largest max_rss over FIT_STAGES; and
-    ``le_hsh3`` whether facetsynth's error is at most HSH order 3's on both subsets (None if one is missing)."""
+    ``le_hsh3``, ``le_hsh3_codes`` whether facetsynth's error is at most that HSH order 3's on both subsets
+    (None if one is missing)."""
     root = Path(results) / capture
     metrics = _json(root / "selfcheck/metrics.json")
     row: dict = {"capture": capture, "frames": metrics.get("frames")}
@@ -409,34 +412,38 @@ def real_row(results: str | Path, capture: str) -> dict:
     row["rectify_to_refine_s"] = None if None in preset else sum(preset)
     peaks = [cost["max_rss_mb"] for cost in costs.values() if cost is not None and cost["max_rss_mb"] is not None]
     row["peak_mem_mb"] = max(peaks) if peaks else None
-    pairs = [(row[f"facetsynth_{s}"], row[f"hsh3_{s}"]) for s in REAL_SUBSETS]
-    row["le_hsh3"] = None if any(a is None or b is None for a, b in pairs) else all(a <= b for a, b in pairs)
+    for ref in REAL_REFERENCES:
+        pairs = [(row[f"facetsynth_{s}"], row[f"{ref}_{s}"]) for s in REAL_SUBSETS]
+        row[f"le_{ref}"] = None if any(a is None or b is None for a, b in pairs) else all(a <= b for a, b in pairs)
     return {column: row.get(column) for column in REAL_COLUMNS}
 
 
 def real_table(rows: Sequence[dict]) -> str:
     """bench-real's rows as a Markdown table: per capture, relative L2 'fitting / held-out' of each method
-    (3 decimals), the fit time (s), the peak memory (MB) and whether facetsynth <= HSH3 on both subsets
-    ('no: relit, held-out' names where it is not)."""
+    (3 decimals), the fit time (s), the peak memory (MB) and whether facetsynth <= each of REAL_REFERENCES on
+    both subsets ('no: fitting, held-out' names where it is not)."""
     def num(value, spec):
         return "-" if value is None else format(value, spec)
 
     head = (["capture", "lights (fit / held-out)"] + [f"{m} rel. L2 (fit / held-out)" for m in REAL_METHODS]
-            + ["fit s (capture..refine)", "peak MB", "facetsynth <= hsh3"])
-    lines = ["| " + " | ".join(head) + " |", "|" + "|".join(["---"] * 2 + ["---:"] * (len(head) - 3) + ["---"]) + "|"]
+            + ["fit s (capture..refine)", "peak MB"] + [f"facetsynth <= {r}" for r in REAL_REFERENCES])
+    numbers = len(head) - 2 - len(REAL_REFERENCES)
+    lines = ["| " + " | ".join(head) + " |",
+             "|" + "|".join(["---"] * 2 + ["---:"] * numbers + ["---"] * len(REAL_REFERENCES)) + "|"]
     for row in rows:
         fitted = None if row.get("frames") is None or row.get("heldout_frames") is None else \
             row["frames"] - row["heldout_frames"]
         cells = [str(row["capture"]), f"{num(fitted, 'd')} / {num(row.get('heldout_frames'), 'd')}"]
         cells += [f"{num(row.get(f'{m}_relit'), '.3f')} / {num(row.get(f'{m}_heldout'), '.3f')}" for m in REAL_METHODS]
         cells += [num(row.get("fit_s"), ".0f"), num(row.get("peak_mem_mb"), ".0f")]
-        if row.get("le_hsh3") is None:
-            cells.append("-")
-        elif row["le_hsh3"]:
-            cells.append("yes")
-        else:
-            worse = [name for s, name in zip(REAL_SUBSETS, ("fitting", "held-out"))
-                     if row[f"facetsynth_{s}"] > row[f"hsh3_{s}"]]
-            cells.append("no: " + ", ".join(worse))
+        for ref in REAL_REFERENCES:
+            if row.get(f"le_{ref}") is None:
+                cells.append("-")
+            elif row[f"le_{ref}"]:
+                cells.append("yes")
+            else:
+                worse = [name for s, name in zip(REAL_SUBSETS, ("fitting", "held-out"))
+                         if row[f"facetsynth_{s}"] > row[f"{ref}_{s}"]]
+                cells.append("no: " + ", ".join(worse))
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"

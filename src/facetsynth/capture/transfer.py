@@ -58,9 +58,10 @@ class Transfer:
         """The manifest value this transfer was parsed from (:func:`parse` of it gives it back)."""
         return {"gamma": self.gamma} if self.kind == "gamma" else self.kind
 
-    def table(self) -> np.ndarray:
-        """The linear value (float64) of each code 0..255: (256,)."""
-        v = np.arange(LEVELS, dtype=np.float64) / (LEVELS - 1)
+    def linear(self, v: np.ndarray) -> np.ndarray:
+        """The linear value of ``v`` = code / 255, any real in [0, 1] (a per-pixel fit's prediction of a code,
+        not only the 256 codes): the module docstring's functions."""
+        v = np.asarray(v, dtype=np.float64)
         if self.kind == "srgb":
             return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
         if self.kind == "linear":
@@ -84,11 +85,17 @@ def parse(value: Any) -> Transfer:
 def table(transfer: Transfer | Any, black_level: float = 0.0) -> np.ndarray:
     """The linear value (float64) of each code 0..255, the black level subtracted (module docstring):
     ``max(0, L - b) / (1 - b)``: non-decreasing, 0 at code 0, 1 at code 255."""
+    return linearise(np.arange(LEVELS, dtype=np.float64) / (LEVELS - 1), transfer, black_level)
+
+
+def linearise(v: np.ndarray, transfer: Transfer | Any, black_level: float = 0.0) -> np.ndarray:
+    """:func:`table` at any ``v`` = code / 255, clipped to [0, 1]: the linear value of a prediction made in
+    code values (an RTI tool's per-pixel fit, :mod:`facetsynth.rti.fits`)."""
     b = float(black_level)
     if not 0.0 <= b < 1.0:
         raise ValueError(f"black level {black_level!r} is not in [0, 1)")
-    lut = parse(transfer).table()
-    return lut if b == 0.0 else np.maximum(lut - b, 0.0) / (1.0 - b)
+    lin = parse(transfer).linear(np.clip(v, 0.0, 1.0))
+    return lin if b == 0.0 else np.maximum(lin - b, 0.0) / (1.0 - b)
 
 
 def decode(codes: np.ndarray, transfer: Transfer | Any, black_level: float = 0.0) -> np.ndarray:

@@ -13,7 +13,11 @@ direction per frame for every pixel) is also fitted per pixel by the models its
 users rely on today (:mod:`facetsynth.rti.fits`: Lambertian photometric stereo,
 PTM, HSH of orders 2 and 3) on the same fitting frames, and scored on the same
 subsets and pixels: ``baselines`` in the metrics; the pictures then read
-measured | facetsynth | HSH order 3 | 4 x facetsynth's difference.
+measured | facetsynth | HSH order 3 | 4 x facetsynth's difference. These fit
+the linear frames. RTIBuilder and relight fit HSH to the 8-bit codes as they
+are; where the capture declares its codes' transfer (one 8-bit exposure per
+frame, ``inputs.capture``), ``hsh3_codes`` is that fit, its predicted codes
+decoded by the same transfer and scored on the same linear frames.
 """
 
 from __future__ import annotations
@@ -25,8 +29,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from ..capture import manifest
-from ..io.fileio import read_frame, read_json, write_json
+from ..capture import manifest, transfer
+from ..io.fileio import read_codes, read_frame, read_json, write_json
 from ..evaluation.metrics import finite_or_none
 from ..app.predict import FrameRenderer, load_model
 from ..capture.rectify import sample_pixels
@@ -62,6 +66,7 @@ class Inputs(RuleFiles):
     manifest: Path
     frames: Path | None = None
     geometry: Path | None = None
+    capture: Path | None = None      # the capture folder: its 8-bit exposures and their transfer (hsh3_codes)
 
 
 class Outputs(RuleFiles):
@@ -96,7 +101,8 @@ def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threa
     images_out.mkdir(parents=True, exist_ok=True)
     metrics: dict = {"definition": DEFINITION, "frames": len(m["frames"]), "sample_pixels": int(sample.sum()),
                      "heldout_every": settings.heldout_every, "relit_every": settings.relit_every}
-    baselines = per_pixel_baselines(nominal, held, subsets, sample)
+    codes = None if inputs.capture is None else declared_codes(Path(inputs.capture) / "manifest.json")
+    baselines = per_pixel_baselines(nominal, held, subsets, sample, codes)
     if baselines is not None:
         metrics["baselines"] = {kind: {name: finite_or_none(s.rel_l2) for name, s in scored.items()}
                                 for kind, (scored, _) in baselines.items()}
@@ -149,10 +155,29 @@ def subset_scores(m: dict, renderer: FrameRenderer, sample: np.ndarray, name: st
     return record
 
 
-def per_pixel_baselines(m: dict, held: np.ndarray, subsets: dict[str, np.ndarray], sample: np.ndarray):
+def declared_codes(path: Path):
+    """The capture manifest's 8-bit codes and how they decode, for ``hsh3_codes``: (codes / 255 (F, H, W, 3),
+    frame q -> the linear frame of codes / 255 (H, W, 3)); None unless it declares a ``transfer`` and every
+    frame has one exposure (a light dome's one JPEG per light)."""
+    m = manifest.load(path)
+    if "transfer" not in m or any(len(f["exposures"]) != 1 for f in m["frames"]):
+        return None
+    times = np.array([float(f["exposures"][0]["time"]) for f in m["frames"]])
+    codes = np.stack([read_codes(f["exposures"][0]["file"]) for f in m["frames"]]) / float(transfer.LEVELS - 1)
+
+    def linear(q: int, v: np.ndarray) -> np.ndarray:     # hdr's frame of these codes: decoded, over the time
+        return transfer.linearise(v, m["transfer"], m.get("black_level", 0.0)) / times[q]
+
+    return codes, linear
+
+
+def per_pixel_baselines(m: dict, held: np.ndarray, subsets: dict[str, np.ndarray], sample: np.ndarray,
+                        codes=None):
     """Per kind of :data:`facetsynth.rti.fits.KINDS`: ({subset: FrameScores}, frame q -> predicted image), the
-    per-pixel fit on the frames not ``held`` out, scored as the SVBRDF is; None unless every light is
-    directional and the camera orthographic (elsewhere a frame has no one light direction)."""
+    per-pixel fit on the frames not ``held`` out, scored as the SVBRDF is; with ``codes``
+    (:func:`declared_codes`) also ``hsh3_codes``: HSH 3 fitted to the codes, its predictions decoded. None
+    unless every light is directional and the camera orthographic (elsewhere a frame has no one light
+    direction)."""
     lights = manifest.lights(m["frames"])
     if np.any(lights[:, 3] != 0) or not manifest.camera(m).orthographic:
         return None
@@ -160,7 +185,7 @@ def per_pixel_baselines(m: dict, held: np.ndarray, subsets: dict[str, np.ndarray
     measured = np.stack([rgb / float(f["exposures"][0]["time"]) for (rgb, _), f in zip(frames, m["frames"])])
     measured /= manifest.light_intensities(m["frames"])[:, None, None, :]   # to unit irradiance
     directions, training = lights[:, :3], np.flatnonzero(~held)
-    out = {}
+    predictors = {}
     for kind in fits.KINDS:
         coefficients = fits.fit(kind, directions[training], measured[training])
 
@@ -168,6 +193,16 @@ def per_pixel_baselines(m: dict, held: np.ndarray, subsets: dict[str, np.ndarray
             intensity = np.asarray(m["frames"][q]["light"]["intensity"], float)
             return fits.relight(kind, coefficients, directions[q:q + 1])[0] * intensity
 
+        predictors[kind] = predict
+    if codes is not None and codes[0].shape != measured.shape:
+        log.warning("hsh3_codes not fitted: the capture's 8-bit exposures are %s, hdr's frames %s",
+                    codes[0].shape, measured.shape)
+    elif codes is not None:
+        values, linear = codes
+        on_codes = fits.fit("hsh3", directions[training], values[training])
+        predictors["hsh3_codes"] = lambda q: linear(q, fits.relight("hsh3", on_codes, directions[q:q + 1])[0])
+    out = {}
+    for kind, predict in predictors.items():
         scored = {}
         for name, subset in subsets.items():
             scored[name] = FrameScores()
