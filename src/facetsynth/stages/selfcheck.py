@@ -156,17 +156,18 @@ def subset_scores(m: dict, renderer: FrameRenderer, sample: np.ndarray, name: st
 
 
 def declared_codes(path: Path):
-    """The capture manifest's 8-bit codes and how they decode, for ``hsh3_codes``: (codes / 255 (F, H, W, 3),
-    frame q -> the linear frame of codes / 255 (H, W, 3)); None unless it declares a ``transfer`` and every
-    frame has one exposure (a light dome's one JPEG per light)."""
+    """The capture manifest's 8-bit codes and how they decode, for ``hsh3_codes``: (codes (F, H, W, 3) uint8,
+    frame q -> the linear frame of code values (H, W, 3), any reals); None unless it declares a ``transfer`` and
+    every frame has one exposure (a light dome's one JPEG per light). The codes stay 8-bit: the fits convert
+    them a block of pixels at a time (a float64 copy of the fresco's is 250 MB)."""
     m = manifest.load(path)
     if "transfer" not in m or any(len(f["exposures"]) != 1 for f in m["frames"]):
         return None
     times = np.array([float(f["exposures"][0]["time"]) for f in m["frames"]])
-    codes = np.stack([read_codes(f["exposures"][0]["file"]) for f in m["frames"]]) / float(transfer.LEVELS - 1)
+    codes = np.stack([read_codes(f["exposures"][0]["file"]) for f in m["frames"]])
 
-    def linear(q: int, v: np.ndarray) -> np.ndarray:     # hdr's frame of these codes: decoded, over the time
-        return transfer.linearise(v, m["transfer"], m.get("black_level", 0.0)) / times[q]
+    def linear(q: int, code: np.ndarray) -> np.ndarray:     # hdr's frame of these codes: decoded, over the time
+        return transfer.linearise(code / float(transfer.LEVELS - 1), m["transfer"], m.get("black_level", 0.0)) / times[q]
 
     return codes, linear
 
