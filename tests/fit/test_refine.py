@@ -399,3 +399,28 @@ def test_the_smoothness_term_interpolates_between_the_cells_the_samples_saw():
     between = 0.5 * (np.roll(table, 1, axis=1) + np.roll(table, -1, axis=1))
     assert np.abs(table - between)[:, 1::2].max() < 0.02                        # the unseen: interpolated
     assert np.abs(smooth[seen] - truth[seen]).max() < 0.025                      # the seen: still the data
+
+
+def test_one_lobe_turned_is_one_material_whatever_kd_the_separation_left():
+    """The Mitsuba copper (no diffuse term, its frame turning around the centre) came out of separate with kd
+    0.017 to 0.10 by cluster; grouped by kd it was four materials, each with its own eta, stretch and NDF,
+    drawn as wedges. Complete NDFs that are one lobe turned (whole sectors here: distance 0 to round-off) are
+    one material; another roughness (0.25 eq. 15 distance at its best turn) stays apart unless kd joins it."""
+    from facetsynth.fit.cluster import joined, turned_distances
+    from facetsynth.geometry.grid import DirectionGrid
+    from facetsynth.models import microfacet
+    grid = DirectionGrid(24, 96)
+    turns = np.radians([0.0, 30.0, 67.5, 90.0, 150.0])
+    lobes = [microfacet.ndf(grid.directions, 0.15, 0.35, t) for t in turns]
+    lobes += [microfacet.ndf(grid.directions, 0.08, 0.08, 0.0)]             # a glossier, isotropic material
+    d = np.stack(lobes)
+    dist = turned_distances(d, grid)
+    np.testing.assert_allclose(dist[:5, :5], 0.0, atol=1e-9)
+    assert dist[5, :5].min() > 0.2 and np.all(dist == dist.T)
+    kd = np.array([[0.017] * 3, [0.10] * 3, [0.05] * 3, [0.08] * 3, [0.033] * 3, [0.5] * 3])
+    by_kd = material_groups(kd, 0.25)
+    assert len(np.unique(by_kd[:5])) >= 4                                   # what kd alone made of the copper
+    linked = dist < 0.05
+    assert joined(by_kd, linked).tolist() == [0, 0, 0, 0, 0, 1]
+    kd[5] = kd[1]                                                           # the same kd: one material again
+    assert joined(material_groups(kd, 0.25), linked).tolist() == [0] * 6

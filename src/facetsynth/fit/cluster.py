@@ -14,7 +14,9 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import sparse
 from scipy.cluster.hierarchy import fcluster, linkage
+from scipy.sparse.csgraph import connected_components
 
 from ..geometry.grid import DirectionGrid
 from .synthesis import SUPPORT, TINY, pairwise_distance, rotate_tuple
@@ -71,9 +73,7 @@ def relative_rotation(d: np.ndarray, w: np.ndarray, d_ref: np.ndarray, w_ref: np
     any phi it gets turns it onto itself.
     """
     shifts = np.arange(-max_shift, max_shift + 1)
-    turned = [rotate_tuple(d_ref, w_ref, grid, float(s)) for s in shifts]
-    dist = pairwise_distance(d, w, np.stack([t[0] for t in turned]), np.stack([t[1] for t in turned]), grid)
-    dist = np.where(np.isfinite(dist), dist, np.inf)
+    dist = shifted_distances(d, w, d_ref, w_ref, grid, max_shift)
     best = np.argmin(dist, axis=1)
     shift = shifts[best].astype(float)
     inner = (best > 0) & (best < shifts.size - 1)
@@ -91,6 +91,15 @@ def relative_rotation(d: np.ndarray, w: np.ndarray, d_ref: np.ndarray, w_ref: np
 
 ALBEDO_WEIGHT = 0.7    # kd that differ by 25 % (params.material_tolerance) are 0.16 apart, past cluster.spread
 ALBEDO_CLIP = 0.5      # log kd deviations bounded: cells half on a black marker must not split a material
+
+
+def shifted_distances(d: np.ndarray, w: np.ndarray, d_ref: np.ndarray, w_ref: np.ndarray, grid: DirectionGrid,
+                      max_shift: int) -> np.ndarray:
+    """(N, 2 max_shift + 1): eq. 15's distance of each tuple <d, w> (N, T, F) to the reference turned by
+    -max_shift .. max_shift whole sectors (inf where there is no overlap)."""
+    turned = [rotate_tuple(d_ref, w_ref, grid, float(s)) for s in range(-max_shift, max_shift + 1)]
+    dist = pairwise_distance(d, w, np.stack([t[0] for t in turned]), np.stack([t[1] for t in turned]), grid)
+    return np.where(np.isfinite(dist), dist, np.inf)
 
 
 def with_albedo(feats: np.ndarray, kd: np.ndarray, weight: float = ALBEDO_WEIGHT, clip: float = ALBEDO_CLIP) -> np.ndarray:
@@ -354,3 +363,24 @@ def material_groups(kd_rep: np.ndarray, tolerance: float) -> np.ndarray:
     features = np.log(np.clip(kd_rep, 1e-3, None))
     tree = linkage(features, method="complete", metric="chebyshev")
     return fcluster(tree, t=np.log1p(tolerance), criterion="distance").astype(np.intp) - 1
+
+
+def turned_distances(d: np.ndarray, grid: DirectionGrid) -> np.ndarray:
+    """(R, R): eq. 15's relative distance between complete NDFs ``d`` (R, T, F) after the best whole-sector
+    turn of one onto the other (:func:`shifted_distances`, a half turn either way), the smaller of the two
+    directions."""
+    d = np.asarray(d, float)
+    full = np.ones_like(d)
+    out = np.stack([shifted_distances(d, full, d[k], full[k], grid, grid.n_phi // 4).min(axis=1)
+                    for k in range(len(d))])
+    return np.minimum(out, out.T)
+
+
+def joined(groups: np.ndarray, linked: np.ndarray) -> np.ndarray:
+    """Labels (R,) of the connected components of ``groups`` (R,) int labels joined wherever ``linked`` (R, R)
+    bool holds, numbered in order of first appearance."""
+    same = (groups[:, None] == groups[None, :]) | linked
+    _, labels = connected_components(sparse.csr_matrix(same), directed=False)
+    _, first = np.unique(labels, return_index=True)
+    order = np.argsort(np.argsort(first))
+    return order[labels].astype(np.intp)

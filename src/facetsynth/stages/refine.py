@@ -28,7 +28,7 @@ from ..io.frames import imap, map_frames
 from ..evaluation.metrics import finite_or_none
 from ..geometry.grid import turn
 from ..models.microfacet import fresnel, half_vector
-from ..fit.cluster import material_groups, relative_rotation
+from ..fit.cluster import joined, material_groups, relative_rotation, turned_distances
 from ..fit.synthesis import pairwise_distance, rotate_tuple
 from ..fit.params import normalise, projected_area
 from ..fit.refine import (NormalSums, best_turns, owned_kd, radiance_weights, solve, solve_table, stretch,
@@ -126,29 +126,41 @@ def stretched(model: SVBRDF, s: np.ndarray) -> SVBRDF:
     return replace(model, ndf=ndf, area=area)
 
 
-def isotropic(model: SVBRDF, tolerance: float) -> np.ndarray:
-    """(R,) bool: representatives whose NDF turned by a quarter is itself within ``tolerance`` (eq. 15's
-    relative distance): their turn is meaningless, and they get none."""
+def turned_onto_itself(model: SVBRDF, turn: float, tolerance: float) -> np.ndarray:
+    """(R,) bool: representatives whose NDF turned by ``turn`` of a full turn is itself within ``tolerance``
+    (eq. 15's relative distance)."""
     grid, d = model.grid, model.ndf.astype(float)
     full = np.ones((1,) + grid.shape)
-    turned = np.stack([rotate_tuple(t, full[0], grid, grid.n_phi / 4)[0] for t in d])
+    turned = np.stack([rotate_tuple(t, full[0], grid, grid.n_phi * turn)[0] for t in d])
     return np.array([pairwise_distance(d[k:k + 1], full, turned[k:k + 1], full, grid)[0, 0] < tolerance
                      for k in range(len(d))])
 
 
+def isotropic(model: SVBRDF, tolerance: float) -> np.ndarray:
+    """(R,) bool: representatives whose NDF turned by a quarter is itself: their turn is meaningless, and they
+    get none."""
+    return turned_onto_itself(model, 0.25, tolerance)
+
+
 def materials(model: SVBRDF, settings: Settings) -> tuple[np.ndarray, np.ndarray]:
-    """The material of every representative (R,) (kd within ``material_tolerance``,
-    :func:`facetsynth.fit.cluster.material_groups`, as params groups them) and every point's representative of
-    largest eq. 18 weight (P,)."""
+    """The material of every representative (R,) and every point's representative of largest eq. 18 weight (P,).
+
+    Representatives are one material where their kd agree within ``material_tolerance``
+    (:func:`facetsynth.fit.cluster.material_groups`, as params groups them) or where their completed NDFs are
+    one turned onto the other within ``share_distance`` (:func:`facetsynth.fit.cluster.turned_distances`). kd
+    alone split a material whose frame turns across the sample: the separation leaves part of a rough lobe in
+    kd, more or less as the lobe's axis lies to the lights (the Mitsuba copper, no diffuse term: kd 0.017 to
+    0.10 by cluster, four materials each with its own eta, stretch and NDF, drawn as wedges)."""
     owner = model.neighbours[np.arange(model.n_points), np.argmax(model.weights, axis=1)]
     reps = (np.arange(model.ndf.shape[0]) if model.representatives is None
             else np.asarray(model.representatives, np.intp))
-    return material_groups(owned_kd(model.kd, owner, reps), settings.material_tolerance), owner
+    by_kd = material_groups(owned_kd(model.kd, owner, reps), settings.material_tolerance)
+    return joined(by_kd, turned_distances(model.ndf, model.grid) < settings.share_distance), owner
 
 
 def share_representatives(model: SVBRDF, capture: RectifiedCapture, specular, valid,
                           settings: Settings) -> tuple[SVBRDF, list]:
-    """One NDF per material, turned point by point: every representative of a material (grouped by kd) whose
+    """One NDF per material, turned point by point: every representative of a material (:func:`materials`) whose
     completed NDF is the material's main one turned, within ``settings.share_distance`` (eq. 15's relative
     distance after the best turn, :func:`facetsynth.fit.cluster.relative_rotation` over a half turn), hands its
     points to it with that turn added to theirs. Synthesis completes each representative on its own, each
@@ -368,6 +380,13 @@ def choose_turns(model: SVBRDF, capture: RectifiedCapture, specular, valid, sett
     rotation[flat[owner] & (weights.max(axis=1) >= 1.0)] = 0.0     # one isotropic NDF: no turn field
 
     def tile_turns(index: np.ndarray) -> None:
+        nb = model.neighbours[index]
+        same = material[nb] == material[owner[index]][:, None]       # the point's own material, turnable
+        candidates = np.where((model.weights[index] != 0) & same & ~flat[nb], nb, -1).astype(np.int64)
+        turnable = (candidates >= 0).any(axis=1)        # an isotropic material's points: nothing to search
+        index, candidates = index[turnable], candidates[turnable]
+        if index.size == 0:
+            return
         pp, _, i, u, rho_s, views = samples(capture, specular, valid, index)
         if pp.size == 0:
             return
@@ -380,9 +399,6 @@ def choose_turns(model: SVBRDF, capture: RectifiedCapture, specular, valid, sett
         current = urr - np.divide(np.clip(ugr, 0, None) ** 2, ugg, out=np.zeros_like(ugg), where=ugg > 0)
         t, p = model.grid.coordinates(turn(h, rotation[at]))
         offsets = np.searchsorted(pp, np.arange(index.size + 1))
-        nb = model.neighbours[index]
-        same = material[nb] == material[owner[index]][:, None]       # the point's own material, turnable
-        candidates = np.where((model.weights[index] != 0) & same & ~flat[nb], nb, -1).astype(np.int64)
         err, rep, k = best_turns(offsets, t, p, denom, r, u, candidates, tables, model.grid.n_theta,
                                  model.grid.n_phi, window)
         better = (rep >= 0) & (err < (1.0 - settings.turn_margin) * current)
