@@ -201,6 +201,10 @@ def share_representatives(model: SVBRDF, capture: RectifiedCapture, specular, va
             rot[points] += 0.0 if flat[main] else turn_j
             shared.append({"representative": int(j), "turn_deg": round(float(np.degrees(turn_j)), 2),
                            "distance": round(gap, 5), "points": int(points.size)})
+        if shared:      # main's own points too: their mixtures held shared members (the copper: a blob of 53
+            points = np.flatnonzero(owner == main)      # points that kept representative 9's table, fitted alone)
+            nb[points], w[points] = main, 0.0
+            w[points, 0] = 1.0
         return (nb, w, rot), shared
 
     for m in np.unique(material):
@@ -496,6 +500,7 @@ def refit_tables(model: SVBRDF, capture: RectifiedCapture, specular, valid, sett
     alone = model.weights.max(axis=1) >= 1.0
     table_of = model.neighbours[np.arange(n), np.argmax(model.weights, axis=1)]
     ndf, area = model.ndf.copy(), model.area.copy()
+    symmetric = turned_onto_itself(model, 0.5, settings.share_distance)
     records = []
     for k in np.unique(table_of[alone & capture.visible]):
         points = np.flatnonzero(alone & capture.visible & (table_of == k))
@@ -517,11 +522,12 @@ def refit_tables(model: SVBRDF, capture: RectifiedCapture, specular, valid, sett
                                    unit="tile"):      # in order: the sums are those of one thread
             m, v = m + tile_m, v + tile_v
         table = solve_table(m, v, model.ndf[k].astype(float).ravel(), settings.ndf_ridge, settings.ndf_smooth,
-                            grid.shape).reshape(grid.shape)
+                            grid.shape, half_turn=bool(symmetric[k])).reshape(grid.shape)
         normalised, _ = normalise(table[None], grid)
         ndf[k] = normalised[0]
         area[k] = projected_area(normalised, grid, model.shadowing_grid)[0]
-        records.append({"table": int(k), "points": int(points.size), "fitted_on": int(index.size)})
+        records.append({"table": int(k), "points": int(points.size), "fitted_on": int(index.size),
+                        "half_turn_symmetric": bool(symmetric[k])})
         log.info("NDF table %d fitted to the samples of %d of its %d points", k, index.size, points.size)
     return replace(model, ndf=ndf, area=area), records
 
