@@ -147,15 +147,19 @@ def materials(model: SVBRDF, settings: Settings) -> tuple[np.ndarray, np.ndarray
 
     Representatives are one material where their kd agree within ``material_tolerance``
     (:func:`facetsynth.fit.cluster.material_groups`, as params groups them) or where their completed NDFs are
-    one turned onto the other within ``share_distance`` (:func:`facetsynth.fit.cluster.turned_distances`). kd
-    alone split a material whose frame turns across the sample: the separation leaves part of a rough lobe in
-    kd, more or less as the lobe's axis lies to the lights (the Mitsuba copper, no diffuse term: kd 0.017 to
-    0.10 by cluster, four materials each with its own eta, stretch and NDF, drawn as wedges)."""
+    anisotropic and one turned onto the other within ``share_distance``
+    (:func:`facetsynth.fit.cluster.turned_distances`). kd alone split a material whose frame turns across the
+    sample: the separation leaves part of a rough lobe in kd, more or less as the lobe's axis lies to the
+    lights (the Mitsuba copper, no diffuse term: kd 0.017 to 0.10 by cluster, four materials each with its
+    own eta, stretch and NDF, drawn as wedges). Isotropic lobes are not joined: pigments of one gloss are
+    materials of their own (the RTI fresco: joined, its held-out lights went 0.114 -> 0.292)."""
     owner = model.neighbours[np.arange(model.n_points), np.argmax(model.weights, axis=1)]
     reps = (np.arange(model.ndf.shape[0]) if model.representatives is None
             else np.asarray(model.representatives, np.intp))
     by_kd = material_groups(owned_kd(model.kd, owner, reps), settings.material_tolerance)
-    return joined(by_kd, turned_distances(model.ndf, model.grid) < settings.share_distance), owner
+    turned = ~isotropic(model, settings.share_distance)
+    linked = (turned_distances(model.ndf, model.grid) < settings.share_distance) & turned[:, None] & turned[None]
+    return joined(by_kd, linked), owner
 
 
 def share_representatives(model: SVBRDF, capture: RectifiedCapture, specular, valid,
