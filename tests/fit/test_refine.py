@@ -404,26 +404,29 @@ def test_the_smoothness_term_interpolates_between_the_cells_the_samples_saw():
 def test_one_lobe_turned_is_one_material_whatever_kd_the_separation_left():
     """The Mitsuba copper (no diffuse term, its frame turning around the centre) came out of separate with kd
     0.017 to 0.10 by cluster; grouped by kd it was four materials, each with its own eta, stretch and NDF,
-    drawn as wedges. Complete NDFs that are one lobe turned (whole sectors here: distance 0 to round-off) are
-    one material; another roughness (0.25 eq. 15 distance at its best turn) stays apart unless kd joins it."""
-    from facetsynth.fit.cluster import joined, turned_distances
+    drawn as wedges. Complete anisotropic NDFs that are one lobe turned (whole sectors here: distance 0 to
+    round-off) are one material; another roughness (0.25 eq. 15 distance at its best turn) stays apart unless
+    kd joins it; isotropic lobes of one gloss are joined by kd alone (the RTI fresco's pigments)."""
+    from facetsynth.fit.cluster import materials, self_distances, turned_distances
     from facetsynth.geometry.grid import DirectionGrid
     from facetsynth.models import microfacet
     grid = DirectionGrid(24, 96)
     turns = np.radians([0.0, 30.0, 67.5, 90.0, 150.0])
     lobes = [microfacet.ndf(grid.directions, 0.15, 0.35, t) for t in turns]
-    lobes += [microfacet.ndf(grid.directions, 0.08, 0.08, 0.0)]             # a glossier, isotropic material
+    lobes += [microfacet.ndf(grid.directions, 0.08, 0.08, 0.0)] * 3            # a glossier, isotropic lobe
     d = np.stack(lobes)
     dist = turned_distances(d, grid)
     np.testing.assert_allclose(dist[:5, :5], 0.0, atol=1e-9)
     assert dist[5, :5].min() > 0.2 and np.all(dist == dist.T)
-    kd = np.array([[0.017] * 3, [0.10] * 3, [0.05] * 3, [0.08] * 3, [0.033] * 3, [0.5] * 3])
-    by_kd = material_groups(kd, 0.25)
-    assert len(np.unique(by_kd[:5])) >= 4                                   # what kd alone made of the copper
-    linked = dist < 0.05
-    assert joined(by_kd, linked).tolist() == [0, 0, 0, 0, 0, 1]
-    kd[5] = kd[1]                                                           # the same kd: one material again
-    assert joined(material_groups(kd, 0.25), linked).tolist() == [0] * 6
+    quarter = self_distances(d, grid, 0.25)
+    assert quarter[:5].min() > 0.1 and quarter[5:].max() < 1e-9
+    np.testing.assert_allclose(self_distances(d, grid, 0.5), 0.0, atol=1e-9)  # GGX: a half turn maps it onto itself
+    kd = np.array([[0.017] * 3, [0.10] * 3, [0.05] * 3, [0.08] * 3, [0.033] * 3,
+                   [0.5] * 3, [0.2] * 3, [0.5, 0.2, 0.1]])
+    assert len(np.unique(material_groups(kd, 0.25)[:5])) >= 4                 # what kd alone made of the copper
+    assert materials(kd, d, grid, 0.25, 0.05).tolist() == [0, 0, 0, 0, 0, 1, 2, 3]
+    kd[5] = kd[1]                                            # the same kd: the glossy one joins the copper
+    assert materials(kd, d, grid, 0.25, 0.05).tolist() == [0, 0, 0, 0, 0, 0, 1, 2]
 
 
 def test_a_half_turn_symmetric_table_is_measured_by_both_halves():

@@ -28,7 +28,8 @@ from ..io.frames import imap, map_frames
 from ..evaluation.metrics import finite_or_none
 from ..geometry.grid import turn
 from ..models.microfacet import fresnel, half_vector
-from ..fit.cluster import joined, material_groups, relative_rotation, turned_distances
+from ..fit import cluster
+from ..fit.cluster import relative_rotation, self_distances
 from ..fit.synthesis import pairwise_distance, rotate_tuple
 from ..fit.params import normalise, projected_area
 from ..fit.refine import (NormalSums, best_turns, owned_kd, radiance_weights, solve, solve_table, stretch,
@@ -128,12 +129,8 @@ def stretched(model: SVBRDF, s: np.ndarray) -> SVBRDF:
 
 def turned_onto_itself(model: SVBRDF, turn: float, tolerance: float) -> np.ndarray:
     """(R,) bool: representatives whose NDF turned by ``turn`` of a full turn is itself within ``tolerance``
-    (eq. 15's relative distance)."""
-    grid, d = model.grid, model.ndf.astype(float)
-    full = np.ones((1,) + grid.shape)
-    turned = np.stack([rotate_tuple(t, full[0], grid, grid.n_phi * turn)[0] for t in d])
-    return np.array([pairwise_distance(d[k:k + 1], full, turned[k:k + 1], full, grid)[0, 0] < tolerance
-                     for k in range(len(d))])
+    (:func:`facetsynth.fit.cluster.self_distances`)."""
+    return self_distances(model.ndf, model.grid, turn) < tolerance
 
 
 def isotropic(model: SVBRDF, tolerance: float) -> np.ndarray:
@@ -143,23 +140,14 @@ def isotropic(model: SVBRDF, tolerance: float) -> np.ndarray:
 
 
 def materials(model: SVBRDF, settings: Settings) -> tuple[np.ndarray, np.ndarray]:
-    """The material of every representative (R,) and every point's representative of largest eq. 18 weight (P,).
-
-    Representatives are one material where their kd agree within ``material_tolerance``
-    (:func:`facetsynth.fit.cluster.material_groups`, as params groups them) or where their completed NDFs are
-    anisotropic and one turned onto the other within ``share_distance``
-    (:func:`facetsynth.fit.cluster.turned_distances`). kd alone split a material whose frame turns across the
-    sample: the separation leaves part of a rough lobe in kd, more or less as the lobe's axis lies to the
-    lights (the Mitsuba copper, no diffuse term: kd 0.017 to 0.10 by cluster, four materials each with its
-    own eta, stretch and NDF, drawn as wedges). Isotropic lobes are not joined: pigments of one gloss are
-    materials of their own (the RTI fresco: joined, its held-out lights went 0.114 -> 0.292)."""
+    """The material of every representative (R,) (:func:`facetsynth.fit.cluster.materials`: kd within
+    ``material_tolerance``, as params groups them, or one anisotropic NDF turned within ``share_distance``) and
+    every point's representative of largest eq. 18 weight (P,)."""
     owner = model.neighbours[np.arange(model.n_points), np.argmax(model.weights, axis=1)]
     reps = (np.arange(model.ndf.shape[0]) if model.representatives is None
             else np.asarray(model.representatives, np.intp))
-    by_kd = material_groups(owned_kd(model.kd, owner, reps), settings.material_tolerance)
-    turned = ~isotropic(model, settings.share_distance)
-    linked = (turned_distances(model.ndf, model.grid) < settings.share_distance) & turned[:, None] & turned[None]
-    return joined(by_kd, linked), owner
+    return cluster.materials(owned_kd(model.kd, owner, reps), model.ndf, model.grid, settings.material_tolerance,
+                             settings.share_distance), owner
 
 
 def share_representatives(model: SVBRDF, capture: RectifiedCapture, specular, valid,
@@ -264,7 +252,7 @@ def fitted_error(model: SVBRDF, capture: RectifiedCapture, specular, valid, inde
 
 def choose_per_material(model: SVBRDF, capture: RectifiedCapture, specular, valid, settings: Settings, what: str,
                         ladder, apply, threads: int = 1) -> tuple[SVBRDF, list[dict]]:
-    """One parameter per material (representatives grouped by kd, :func:`facetsynth.fit.cluster.material_groups`,
+    """One parameter per material (:func:`materials`,
     a point belonging to its largest eq. 18 weight's), chosen by the samples: each value of ``ladder`` is
     tried on up to ``settings.material_points`` of the material's points (evenly strided), scored by the
     squared radiance error left by their kd, ks fit, and the minimum between the best one's neighbours
