@@ -453,3 +453,18 @@ def test_a_half_turn_symmetric_table_is_measured_by_both_halves():
     np.testing.assert_array_equal(table, np.roll(table, n_phi // 2, axis=1))
     plain = solve_table(m, v, prior, 1e-9)
     assert np.abs(plain[~seen]).max() < 1e-6 and np.abs(plain[seen] - truth[seen]).max() < 1e-6
+
+
+def test_a_table_is_folded_only_where_its_points_turn_widely():
+    """The copper's points turn all the way round (mean resultant length 0); a table whose points keep one frame
+    within +-25 deg (the Mitsuba tiles and quadrants) or one turned by 180 deg as a whole is not folded; evenly
+    over a quarter turn is the edge (0.90)."""
+    from facetsynth.stages.refine import turned_widely
+    rng = np.random.default_rng(4)
+    assert turned_widely(rng.uniform(-np.pi, np.pi, 1000))
+    assert turned_widely(np.radians(rng.uniform(-80, 110, 1000)))                     # the copper's, measured
+    assert not turned_widely(np.radians(rng.uniform(-25, 25, 1000)))
+    assert not turned_widely(np.full(50, np.pi))
+    assert not turned_widely(np.radians(np.linspace(-44, 44, 1001)))
+    assert turned_widely(np.radians(np.linspace(-46, 46, 1001)))
+    assert not turned_widely(np.zeros(0))
