@@ -54,13 +54,13 @@ run: $(VENV)/.installed-run
 	$(BIN)/snakemake --cores $(CORES)
 
 test: $(VENV)/.installed-test
-	$(BIN)/python -m pytest -q -n $(CORES) --dist loadgroup
+	$(BIN)/python -m pytest -q -n $(CORES) --dist loadfile
 
 lint: $(VENV)/.installed-test
 	BIN=$(BIN) .ci/lint
 
 test-scenes: $(VENV)/.installed-test
-	$(BIN)/python -m pytest -q -m scenes -n $(CORES) --dist loadgroup
+	$(BIN)/python -m pytest -q -m scenes -n $(CORES) --dist loadfile
 
 test-cluster: $(VENV)/.installed-cluster
 	bash tests/cluster/install.sh

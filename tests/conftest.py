@@ -113,17 +113,10 @@ LONGEST_FIRST = ("workflow/test_workflow.py", "fit/test_adaptive_model.py", "tru
 
 def pytest_collection_modifyitems(items):
     """A test that uses ``demo_run`` is a whole-workflow test: it runs with the scene tests (make test-scenes).
-    Every test is in the xdist group of its file, those that use ``demo_run`` in one group of their own: `make
-    test` and `make test-scenes` hand whole groups to their workers (--dist loadgroup), so a module fixture is
-    made once and ``demo_run`` once (with --dist loadfile its four files went to both workers, and each made it:
-    7 min of a worker's time twice). The files of :data:`LONGEST_FIRST` are collected first, in that order (the
-    rest keep theirs)."""
+    The files of :data:`LONGEST_FIRST` are collected first, in that order (the rest keep theirs)."""
     for item in items:
         if "demo_run" in getattr(item, "fixturenames", ()):
             item.add_marker(pytest.mark.scenes)
-            item.add_marker(pytest.mark.xdist_group("demo_run"))
-        else:
-            item.add_marker(pytest.mark.xdist_group(Path(str(item.fspath)).as_posix()))
 
     def rank(item) -> int:
         path = Path(str(item.fspath)).as_posix()
