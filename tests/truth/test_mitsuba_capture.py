@@ -331,11 +331,13 @@ MITSUBA_TILES_BSDF = {"type": "blendbsdf", "weight": 0.5,
 #   the satin's narrow peak takes 48 x 192): 0.052 / 0.087 / 0.115 / 0.480, every bound of the issue met; the
 #   bounds are the measurement plus 15 % and never above the issue's: 0.06 / 0.10 / 0.133. Copper keeps 32 x 128
 #   (no figure moved); tiles take 40 x 160: 0.021 / 0.029 / 0.021 / 0.019 (session 43: 0.022 / 0.034 / 0.023 /
-#   0.023).
+#   0.023). Session 49 (refine: one turned lobe is one material, its table folded; docs/decisions.md): copper
+#   0.026 / 0.030 / 0.025 / 0.030 (0.032 / 0.042 / 0.032 / 0.048 before, drawn in wedges that the old bounds
+#   0.037 / 0.051 / 0.036 passed); its bounds are now the measurement plus 15 %: 0.030 / 0.035 / 0.029.
 # Every case also renders OTHER_VIEW (config.yaml's theta30, an elevation 23 deg above the fitting camera's
 # 53.1 deg; the paper's view is at 50.9 deg), reported (printed, and recorded as a test property), not asserted.
 OTHER_VIEW = (30.0, 20.0)
-NATIVE = {"copper": (COPPER, "turned", (0.037, 0.051, 0.036)),
+NATIVE = {"copper": (COPPER, "turned", (0.030, 0.035, 0.029)),
           "tiles": (MITSUBA_TILES_BSDF, "tiles", (0.025, 0.038, 0.025)),
           "rgl-quadrants": (mitsuba_capture.scene_regions(RGL_QUADRANTS)["regions"], 0.0, (0.06, 0.10, 0.133))}
 
