@@ -109,6 +109,10 @@ def main(argv: list[str] | None = None) -> int:
     png_path = bench.plot_scale(rows, exponents, args.out / "scale.png", title)
     for stage, (in_points, in_frames) in exponents.items():
         print(f"bench-scale: {stage:12s} wall ~ P^{_fmt(in_points)} F^{_fmt(in_frames)}", file=sys.stderr)
+    large = [r for r in rows if r["stage"] == "total" and r["frames"] == 480 and r["points"] >= 256 ** 2]
+    print(f"bench-scale: total (rectify .. refine) wall ~ P^"
+          f"{_fmt(bench.growth_exponent([r['points'] for r in large], [r['wall_s'] for r in large]))} from 256^2 "
+          f"points up (issue 31: at most 1.05)", file=sys.stderr)
     print(f"bench-scale: wrote {csv_path} and {png_path}", file=sys.stderr)
     return 0
 
