@@ -33,6 +33,7 @@ from facetsynth.evaluation.metrics import marker_centroids  # noqa: E402
 from facetsynth.models.render import radiance  # noqa: E402
 from facetsynth.truth.scene import Scene  # noqa: E402
 from facetsynth.stages.capture import check_capture  # noqa: E402
+from facetsynth.stages.validate import _to_png, side_by_side  # noqa: E402
 from facetsynth.truth.virtual_rig import VirtualRig  # noqa: E402
 
 RIG = Path(__file__).parents[1] / "data" / "rig-mitsuba.yaml"
@@ -371,12 +372,17 @@ def fitted_native(request, repo, tmp_path_factory):
 
 def _heldout_rel_l2(root: Path, name: str) -> float:
     """Relative L2 of `facetsynth predict`'s frames against Mitsuba's held-out frames ``root/name`` over the
-    sample pixels (whole footprint on the sample, off the markers), all frames pooled."""
+    sample pixels (whole footprint on the sample, off the markers), all frames pooled. Writes the brightest
+    frame as validate draws the virtual rig's, ``root/{name}.png`` (truth | prediction | 4 x difference): the
+    copper's wedges passed every figure until they were looked at (session 48)."""
     held = manifest.load(root / name)
     mask = mitsuba_capture.sample_pixels(manifest.camera(held), SIZE, held["provenance"]["markers"])
-    truth = np.stack([read_rgb(f["exposures"][0]["file"]) for f in held["frames"]]).astype(float)[:, mask]
+    truth = np.stack([read_rgb(f["exposures"][0]["file"]) for f in held["frames"]]).astype(float)
     predicted = np.stack([read_rgb(root / name.replace("heldout", "predicted") / f"frames/{q:04d}.exr")
-                          for q in range(len(held["frames"]))]).astype(float)[:, mask]
+                          for q in range(len(held["frames"]))]).astype(float)
+    q = int(np.argmax(truth[:, mask].sum(axis=(1, 2))))
+    _to_png(root / f"{name}.png", side_by_side(truth[q], predicted[q], None, float(truth[q][mask].max())))
+    truth, predicted = truth[:, mask], predicted[:, mask]
     return float(np.sqrt(((predicted - truth) ** 2).sum() / (truth ** 2).sum()))
 
 
@@ -395,7 +401,8 @@ def test_the_native_fit_reproduces_its_own_mitsuba_frames(fitted_native, record_
     print(f"{fitted_native['name']}: relit {selfcheck['relit']['rel_l2']:.4f}, held-out lights "
           f"{selfcheck['heldout']['rel_l2']:.4f}, held-out view {rel_l2:.4f} (theta {HELDOUT_VIEW[0]}), other "
           f"elevation {other:.4f} (theta {OTHER_VIEW[0]}); refine on the samples "
-          f"{refine['fitting_samples_rel_l2_before']:.4f} -> {refine['fitting_samples_rel_l2_after']:.4f}")
+          f"{refine['fitting_samples_rel_l2_before']:.4f} -> {refine['fitting_samples_rel_l2_after']:.4f}; pictures "
+          f"{root / 'heldout.png'}, {root / 'heldout-other.png'}")
     assert np.isfinite(other)
     assert selfcheck["relit"]["frames"] == 54 and selfcheck["heldout"]["frames"] == 48
     assert selfcheck["relit"]["rel_l2"] <= relit_bound
