@@ -138,7 +138,10 @@ def test_noise_free_demo_predicts_held_out_views_and_fits_stencils(demo_run):
         assert view["heldout_rel_l2"] <= 0.055
     check = metrics(demo_run, "demo", "selfcheck")
     assert check["relit"]["rel_l2"] <= 0.048 and check["heldout"]["rel_l2"] <= 0.046 and not check["poor_fit"]
-    assert metrics(demo_run, "demo", "refine")["ks_median_rel_error"] <= 0.085
+    # session 49: 0.086, the turned copper's table folded (one value for cells phi and phi + pi, what fixed the
+    # Mitsuba copper's wedges); 0.076 with it unfolded, the held-out figures the same to three digits. Bound
+    # 15 % above
+    assert metrics(demo_run, "demo", "refine")["ks_median_rel_error"] <= 0.099
     # maps as smooth as the material: the copper's ks within a few per cent everywhere (p10 / p90 of the
     # median measured 0.968 / 1.022; before, 0.99 / 1.64: wedges of 1.5 x), and the markers black
     model = SVBRDF.load(demo_run / "results/demo/svbrdf")
@@ -198,7 +201,7 @@ def test_the_demo_as_make_run_fits_it_meets_issue_29(repo, tmp_path):
     ks 0.025 (0.017 before its turned copper's table was folded, session 49), views 0.046 / 0.046, relit 0.041,
     held-out lights 0.039. ks alone rides on eta's valley (ks F0 is
     what the samples fix): the noise-free run of ``demo_run`` chooses eta 1.823 / 1.56 (truth 1.8 / 1.5) and
-    its ks is 0.073, asserted there at 0.085; this run chooses 1.802 / 1.538."""
+    its ks is 0.086 (0.073 before the fold), asserted there at 0.099; this run chooses 1.799 / 1.538."""
     workdir = make_workdir(repo, tmp_path / "wf", "demo\tvirtual\tresources/scenes/demo.yaml\t\n", resolution=None)
     done = snakemake(workdir, "results/demo/refine/metrics.json", "results/demo/selfcheck/metrics.json",
                      "results/demo/validate/metrics.json")
