@@ -127,16 +127,10 @@ def stretched(model: SVBRDF, s: np.ndarray) -> SVBRDF:
     return replace(model, ndf=ndf, area=area)
 
 
-def turned_onto_itself(model: SVBRDF, turn: float, tolerance: float) -> np.ndarray:
-    """(R,) bool: representatives whose NDF turned by ``turn`` of a full turn is itself within ``tolerance``
-    (:func:`facetsynth.fit.cluster.self_distances`)."""
-    return self_distances(model.ndf, model.grid, turn) < tolerance
-
-
 def isotropic(model: SVBRDF, tolerance: float) -> np.ndarray:
-    """(R,) bool: representatives whose NDF turned by a quarter is itself: their turn is meaningless, and they
-    get none."""
-    return turned_onto_itself(model, 0.25, tolerance)
+    """(R,) bool: representatives whose NDF turned by a quarter is itself within ``tolerance``
+    (:func:`facetsynth.fit.cluster.self_distances`): their turn is meaningless, and they get none."""
+    return self_distances(model.ndf, model.grid, 0.25) < tolerance
 
 
 def materials(model: SVBRDF, settings: Settings) -> tuple[np.ndarray, np.ndarray]:
@@ -188,13 +182,12 @@ def share_representatives(model: SVBRDF, capture: RectifiedCapture, specular, va
             if j == main or gap >= settings.share_distance:
                 continue
             points = np.flatnonzero(owner == j)
-            nb[points], w[points] = main, 0.0
-            w[points, 0] = 1.0
             rot[points] += 0.0 if flat[main] else turn_j
             shared.append({"representative": int(j), "turn_deg": round(float(np.degrees(turn_j)), 2),
                            "distance": round(gap, 5), "points": int(points.size)})
-        if shared:      # main's own points too: their mixtures held shared members (the copper: a blob of 53
-            points = np.flatnonzero(owner == main)      # points that kept representative 9's table, fitted alone)
+        if shared:      # every point of main and of the members it took, main's own too (their mixtures held
+            # shared members: the copper's blob of 53 points on representative 9's table, fitted alone), on main alone
+            points = np.flatnonzero(np.isin(owner, [main] + [r["representative"] for r in shared]))
             nb[points], w[points] = main, 0.0
             w[points, 0] = 1.0
         return (nb, w, rot), shared
@@ -480,7 +473,8 @@ def turned_widely(turns: np.ndarray) -> bool:
     it onto itself (the Mitsuba copper: 0.63). The turns of a table that keeps one frame lie within +-25 deg
     (the Mitsuba tiles and quadrants: 0.97-1.00), and folding theirs lost what a measured BRDF's table holds
     beyond eq. 6 (the quadrants' satin, 0.035 from its half turn: held-out lights 0.086 -> 0.091)."""
-    return turns.size > 0 and abs(np.mean(np.exp(1j * np.asarray(turns, float)))) < np.sin(np.pi / 4) / (np.pi / 4)
+    return bool(turns.size > 0
+                and abs(np.mean(np.exp(1j * np.asarray(turns, float)))) < np.sin(np.pi / 4) / (np.pi / 4))
 
 
 def refit_tables(model: SVBRDF, capture: RectifiedCapture, specular, valid, settings: Settings,
@@ -502,7 +496,7 @@ def refit_tables(model: SVBRDF, capture: RectifiedCapture, specular, valid, sett
     alone = model.weights.max(axis=1) >= 1.0
     table_of = model.neighbours[np.arange(n), np.argmax(model.weights, axis=1)]
     ndf, area = model.ndf.copy(), model.area.copy()
-    symmetric = turned_onto_itself(model, 0.5, settings.share_distance)
+    symmetric = self_distances(model.ndf, model.grid, 0.5) < settings.share_distance    # a half turn maps it
     records = []
     for k in np.unique(table_of[alone & capture.visible]):
         points = np.flatnonzero(alone & capture.visible & (table_of == k))
