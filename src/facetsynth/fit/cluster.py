@@ -19,7 +19,7 @@ from scipy.cluster.hierarchy import fcluster, linkage
 from scipy.sparse.csgraph import connected_components
 
 from ..geometry.grid import DirectionGrid
-from .synthesis import SUPPORT, TINY, pairwise_distance, rotate_tuple
+from .synthesis import SUPPORT, TINY, pairwise_distance, rotate_tuple, turned_pairwise_distance
 
 log = logging.getLogger(__name__)
 
@@ -366,13 +366,10 @@ def material_groups(kd_rep: np.ndarray, tolerance: float) -> np.ndarray:
 
 
 def turned_distances(d: np.ndarray, grid: DirectionGrid) -> np.ndarray:
-    """(R, R): eq. 15's relative distance between complete NDFs ``d`` (R, T, F) after the best whole-sector
-    turn of one onto the other (:func:`shifted_distances`, up to a quarter turn either way: a lobe that a half
-    turn maps onto itself needs no more), the smaller of the two directions."""
-    d = np.asarray(d, float)
-    full = np.ones_like(d)
-    out = np.stack([shifted_distances(d, full, d[k], full[k], grid, grid.n_phi // 4).min(axis=1)
-                    for k in range(len(d))])
+    """(R, R): eq. 15's distance between complete NDFs ``d`` (R, T, F) after the best whole-sector turn of one
+    onto the other (:func:`facetsynth.fit.synthesis.turned_pairwise_distance`, up to a quarter turn either way:
+    a lobe that a half turn maps onto itself needs no more), the smaller of the two directions."""
+    out = turned_pairwise_distance(d, grid, grid.n_phi // 4).min(axis=-1)
     return np.minimum(out, out.T)
 
 

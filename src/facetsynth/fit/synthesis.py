@@ -131,6 +131,25 @@ def pairwise_distance(d1: np.ndarray, w1: np.ndarray, d2: np.ndarray, w2: np.nda
     return _finish(a11, a12, a22, s1, s2, den, a11, a22, overlap).distance
 
 
+def turned_pairwise_distance(d: np.ndarray, grid: DirectionGrid, max_shift: int) -> np.ndarray:
+    """:func:`pairwise_distance` between complete NDFs (W = 1 on every cell) ``d`` (R, T, F) and each of them
+    turned (eq. 13) by -max_shift .. max_shift whole sectors: (R, R, 2 max_shift + 1), [j, k, s] = d_j
+    against d_k turned by s - max_shift.
+
+    With the whole domain in the overlap only the cross term of eq. 15 moves with the turn, and it is a
+    circular cross-correlation along phi: every turn of every pair from one FFT per NDF."""
+    d = np.asarray(d, float)
+    om = grid.solid_angles
+    spectra = np.fft.rfft(d, axis=-1)                                               # (R, T, nf)
+    cross = np.fft.irfft(np.einsum("jtf,t,ktf->jkf", np.conj(spectra), om[:, 0], spectra), n=grid.n_phi,
+                         axis=-1)                                                   # (R, R, F): every lag
+    a12 = cross[..., np.arange(-max_shift, max_shift + 1) % grid.n_phi]
+    s, squares = np.sum(d * om, axis=(1, 2)), np.sum(d**2 * om, axis=(1, 2))
+    area = np.full(a12.shape, om.sum())
+    a11, a22 = squares[:, None, None], squares[None, :, None]
+    return _finish(a11, a12, a22, s[:, None, None], s[None, :, None], area, a11, a22, area).distance
+
+
 # ----------------------------------------------------------------------------
 # eq. 13-15 for every whole-sector rotation: circular cross-correlation by FFT
 # ----------------------------------------------------------------------------

@@ -57,6 +57,7 @@ for bit, what it gave before shading normals existed.
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -104,6 +105,9 @@ def mixture_at(table, neighbours, weights, index, t, p, n_theta, n_phi):
                 acc += w * value
         out[s] = acc
     return out
+
+
+_CHECKED_NORMALS: weakref.WeakValueDictionary = weakref.WeakValueDictionary()   # id -> a unit, read-only field
 
 
 def normal_problem(normal: np.ndarray, tol: float = NORMAL_UNIT_TOL) -> str | None:
@@ -208,7 +212,7 @@ class SVBRDF:
                             ("rotation", (p,))):
             if getattr(self, name) is not None and getattr(self, name).shape != shape:
                 raise ValueError(f"SVBRDF {name} has shape {getattr(self, name).shape}, expected {shape}")
-        if self.normal is not None:
+        if self.normal is not None and _CHECKED_NORMALS.get(id(self.normal)) is not self.normal:
             self.normal = np.asarray(self.normal, float)
             if self.normal.shape != (p, 3):
                 raise ValueError(f"SVBRDF normal has shape {self.normal.shape}, expected {(p, 3)}")
@@ -216,6 +220,8 @@ class SVBRDF:
             if problem:
                 raise ValueError(f"SVBRDF normal: {problem}")
             self.normal = self.normal / np.linalg.norm(self.normal, axis=-1, keepdims=True)
+            self.normal.setflags(write=False)      # checked once: a model made from this one by replace() keeps it
+            _CHECKED_NORMALS[id(self.normal)] = self.normal
         if self.neighbours.shape != self.weights.shape or self.neighbours.shape[0] != p:
             raise ValueError(f"SVBRDF neighbours {self.neighbours.shape} / weights {self.weights.shape}: "
                              f"expected (P={p}, K) each")
