@@ -15,13 +15,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from ..fit import cluster
 from ..fit import partial_ndf
 from ..io.fileio import NpyRows, read_exr, read_json, write_json, write_npy
 from ..io.tables import SupportTable
-from ..io.frames import imap
+from ..io.frames import imap, map_frames
 from ..geometry.grid import DirectionGrid
 from ..fit.partial_ndf import relative_l2
 from .common import RectifiedCapture, RuleFiles, StageSettings, tiles
@@ -141,7 +140,7 @@ def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threa
     points = load(inputs, threads)
     specular = None if inputs.specular is None else NpyRows(inputs.specular)
     valid = None if inputs.valid is None else NpyRows(inputs.valid)
-    fitted = fit(points, specular, valid, settings)
+    fitted = fit(points, specular, valid, settings, threads)
     write(outputs, points, fitted)
     metrics = {**fit_metrics(points, fitted, settings), "seconds": round(time.perf_counter() - t0, 2)}
     log.info("cluster metrics: %s", metrics)
@@ -170,11 +169,11 @@ def load(inputs: Inputs, threads: int = 1) -> Points:
     return Points(capture, grid, d_all, w_all, visible, d, w, cgrid, domain, kd)
 
 
-def fit(points: Points, specular, valid, settings: Settings) -> Fit:
+def fit(points: Points, specular, valid, settings: Settings, threads: int = 1) -> Fit:
     """k-means representatives (:func:`kmeans_clusters`), their partial NDFs (pooled from the members'
     samples ``specular``, ``valid`` where given, :func:`pooled_representatives`), eq. 18 neighbours and
     weights, and the clusters that turn across the sample (:func:`point_turns`): their points are their
-    representative turned."""
+    representative turned. Clusters are pooled and turned on ``threads`` threads."""
     count, result = kmeans_clusters(points, settings)
     visible, grid = points.visible, points.grid
     if specular is None:
@@ -183,7 +182,7 @@ def fit(points: Points, specular, valid, settings: Settings) -> Fit:
                         np.ones(result.representatives.size, int))
     else:
         pooled = pooled_representatives(points.capture, visible, result, points.d_all, points.w_all, specular,
-                                        valid, grid, settings)
+                                        valid, grid, settings, threads)
     rep_d, rep_w, _ = cluster.coarse(pooled.ndf, pooled.confidence, grid)
     d, w = points.d, points.w
     if points.domain is not None:   # eq. 18 compared on the cells every point sees, as k-means (the rig's domain)
@@ -191,7 +190,7 @@ def fit(points: Points, specular, valid, settings: Settings) -> Fit:
         rep_w = np.broadcast_to(points.domain, rep_w.shape).astype(float)
     nbr, wts, lam = cluster.interpolation_weights(d, w, rep_d, rep_w, points.cgrid, k=settings.neighbours,
                                                   radius=settings.radius_lambda, ridge=settings.ridge)
-    turns = point_turns(points.d_all, points.w_all, visible, result.labels, pooled, grid)
+    turns = point_turns(points.d_all, points.w_all, visible, result.labels, pooled, grid, threads=threads)
     turned = np.flatnonzero(turns.turned)
     members = np.isin(result.labels, turned)
     nbr[members], wts[members] = result.labels[members, None], 0.0
@@ -200,7 +199,7 @@ def fit(points: Points, specular, valid, settings: Settings) -> Fit:
              "(eq. 13); turn spread per cluster (deg) %s", turned.size, result.representatives.size,
              int(members.sum()), np.round(np.degrees(turns.spread), 1).tolist())
     return Fit(count, result, pooled, nbr, wts, lam, turns, members, np.where(members, turns.phi, 0.0),
-               eq18_errors(d, w, rep_d, nbr, wts, points.cgrid))
+               eq18_errors(d, w, rep_d, nbr, wts, points.cgrid, threads))
 
 
 def kmeans_clusters(points: Points, settings: Settings) -> tuple[Count, cluster.Clustering]:
@@ -251,11 +250,13 @@ def representative_count(feats: np.ndarray, n_visible: int, settings: Settings) 
 
 
 def eq18_errors(d: np.ndarray, w: np.ndarray, rep_d: np.ndarray, nbr: np.ndarray, wts: np.ndarray,
-                cgrid: DirectionGrid) -> np.ndarray:
+                cgrid: DirectionGrid, threads: int = 1) -> np.ndarray:
     """Eq. 18 on the partial data: each point's mixture of its neighbours' coarse NDFs against its own D
-    (relative L2 on its W > 0), the finite ones: how well the representatives span the points."""
-    err = np.concatenate([relative_l2(np.einsum("nk,nktp->ntp", wts[t], rep_d[nbr[t]]), d[t], w[t] > 0, cgrid)
-                          for t in tiles(len(d))])
+    (relative L2 on its W > 0), the finite ones: how well the representatives span the points (a tile of
+    points at a time on ``threads`` threads)."""
+    err = np.concatenate(map_frames(
+        lambda t: relative_l2(np.einsum("nk,nktp->ntp", wts[t], rep_d[nbr[t]]), d[t], w[t] > 0, cgrid),
+        list(tiles(len(d))), threads, "cluster: eq. 18 errors", unit="tile"))
     return err[np.isfinite(err)]
 
 
@@ -326,18 +327,20 @@ class Pooled:
 
 
 def pooled_representatives(capture: RectifiedCapture, visible: np.ndarray, result, d_all, w_all, specular, valid,
-                           grid: DirectionGrid, settings: Settings) -> Pooled:
+                           grid: DirectionGrid, settings: Settings, threads: int = 1) -> Pooled:
     """Every cluster's partial NDF from up to POOL_MEMBERS of its members' eq. 8 samples
     (:func:`facetsynth.fit.partial_ndf.pooled_fit`: ``settings.shadowing``, ``grazing_deg``, ``tolerance``,
     ``max_iterations``), for its representative's view and, where the cluster turns
     across the sample (TURN_GAIN, TURN_SPREAD), in its frame (each member's turn against it,
     :func:`facetsynth.fit.cluster.relative_rotation`, undone; elsewhere the turns are noise, and undoing
-    them would blur the lobe)."""
+    them would blur the lobe). Clusters in parallel on ``threads`` threads."""
     views = capture.view_directions(True)
     ndf = np.zeros((len(result.representatives),) + grid.shape)
     conf = np.zeros_like(ndf)
     counts = np.zeros(len(result.representatives), int)
-    for c, rep in enumerate(tqdm(result.representatives, desc="cluster: pooled partial NDFs", unit="rep")):
+
+    def pool(c: int) -> None:
+        rep = result.representatives[c]
         members = visible[np.flatnonzero(result.labels == c)]
         members = members[:: max(1, int(np.ceil(members.size / POOL_MEMBERS)))]
         w_members = np.asarray(w_all[members], float)
@@ -352,6 +355,8 @@ def pooled_representatives(capture: RectifiedCapture, visible: np.ndarray, resul
                                         settings.grazing_deg, settings.tolerance, settings.max_iterations,
                                         rotation=turn if turning else None)
         ndf[c], conf[c], counts[c] = pooled.ndf[0], pooled.confidence[0], members.size
+
+    map_frames(pool, range(len(result.representatives)), threads, "cluster: pooled partial NDFs", unit="rep")
     return Pooled(ndf, conf, counts)
 
 
@@ -365,13 +370,14 @@ class Turns:
 
 
 def point_turns(d_all, w_all, visible: np.ndarray, labels: np.ndarray, pooled: Pooled, grid: DirectionGrid,
-                batch: int = 512) -> Turns:
+                batch: int = 512, threads: int = 1) -> Turns:
     """Each visible point's turn against its cluster's pooled partial NDF (eq. 13,
     :func:`facetsynth.fit.cluster.relative_rotation`), and which clusters are one material turning across the
     sample (TURN_GAIN, TURN_SPREAD): for those a representative and a per-point turn replace eq. 18's
     mixture of representatives at other turns, which showed as wedges on the demo's turned copper.
     Whether a cluster turns, its spread and gain, are measured on up to POOL_MEMBERS of its members
-    (evenly strided); the turns of every member only where it does (elsewhere the turn is 0)."""
+    (evenly strided); the turns of every member only where it does (elsewhere the turn is 0). Clusters in
+    parallel on ``threads`` threads."""
     n_rep = len(pooled.ndf)
     phi, gain = np.zeros(len(visible)), np.ones(len(visible))
 
@@ -383,10 +389,11 @@ def point_turns(d_all, w_all, visible: np.ndarray, labels: np.ndarray, pooled: P
                                                               max_shift=grid.n_phi // 4)
 
     spread, median_gain = np.zeros(n_rep), np.ones(n_rep)
-    for c in range(n_rep):
+
+    def cluster_turns(c: int) -> None:
         members = np.flatnonzero(labels == c)
         if members.size == 0:
-            continue
+            return
         sample = members[:: max(1, int(np.ceil(members.size / POOL_MEMBERS)))]
         measure(sample, c)
         spread[c], median_gain[c] = float(np.std(phi[sample])), float(np.median(gain[sample]))
@@ -394,5 +401,7 @@ def point_turns(d_all, w_all, visible: np.ndarray, labels: np.ndarray, pooled: P
             measure(np.setdiff1d(members, sample, assume_unique=True), c)
         else:
             phi[sample] = 0.0
+
+    map_frames(cluster_turns, range(n_rep), threads, "cluster: turns within clusters", unit="rep")
     turned = (median_gain < TURN_GAIN) & (spread > TURN_SPREAD * grid.d_phi)
     return Turns(phi, spread, median_gain, turned)
