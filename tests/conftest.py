@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import fcntl
+import os
+import shutil
 import sys
 from pathlib import Path
 
@@ -125,17 +128,43 @@ def pytest_collection_modifyitems(items):
 
 
 @pytest.fixture(scope="session")
-def demo_run(repo, tmp_path_factory):
+def demo_run(repo, tmp_path_factory, worker_id):
     """The default demo sample, noise-free, through the whole default workflow (validate, stencil_fit, the
-    report's figures, the exports): one run (about 4 min) shared by the workflow, report and export tests, which
-    are therefore scene tests (``pytest_collection_modifyitems``)."""
+    report's figures, the exports): one run (about 5 min) shared by the workflow, report and export tests, which
+    are therefore scene tests (``pytest_collection_modifyitems``).
+
+    Made once per test run, not once per xdist worker: the first worker to ask makes it under a lock in the
+    folder the workers share (pytest-xdist's recipe for a session fixture run once; it was made on both workers,
+    592 s and 317 s of the scene suite), and every worker gets its own copy (:func:`linked_copy`), since some
+    tests run Snakemake in it (``--forcerun``, ``--report``)."""
     from test_workflow import NOISE_FREE, make_workdir, snakemake
-    workdir = make_workdir(repo, tmp_path_factory.mktemp("wf"), "demo\tvirtual\tresources/scenes/demo.yaml\t\n",
-                           resolution=None)
-    (workdir / "noise-free.yaml").write_text("virtual:\n  noise: false\n")
-    done = snakemake(workdir, *NOISE_FREE)
-    assert done.returncode == 0, done.stderr[-3000:]
-    return workdir
+    shared = tmp_path_factory.getbasetemp()
+    shared = shared if worker_id == "master" else shared.parent
+    made = shared / "demo-run"
+    with open(shared / "demo-run.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not (made / "made").exists():
+            shutil.rmtree(made, ignore_errors=True)
+            workdir = make_workdir(repo, made, "demo\tvirtual\tresources/scenes/demo.yaml\t\n", resolution=None)
+            (workdir / "noise-free.yaml").write_text("virtual:\n  noise: false\n")
+            done = snakemake(workdir, *NOISE_FREE)
+            assert done.returncode == 0, done.stderr[-3000:]
+            (made / "made").touch()
+    return linked_copy(made, tmp_path_factory.mktemp("wf") / "demo")
+
+
+def linked_copy(source: Path, dest: Path) -> Path:
+    """A copy of the workflow folder ``source`` in ``dest``: files of 1 MB and more (frames, tables) hard-linked,
+    the rest copied. Snakemake deletes a job's outputs before it runs the job again and facetsynth publishes
+    whole files by renaming, so a run in the copy never writes through a link into ``source``; the small
+    files (logs, benchmarks, Snakemake's own records, which are rewritten in place) are the copy's own."""
+    def link_or_copy(src: str, dst: str) -> str:
+        if os.path.getsize(src) >= 1 << 20:
+            os.link(src, dst)
+            return dst
+        return shutil.copy2(src, dst)
+    shutil.copytree(source, dest, copy_function=link_or_copy, symlinks=True)
+    return dest
 
 
 # the four-quadrant scene of the numerical extremes (issue 7, part 2)
