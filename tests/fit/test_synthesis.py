@@ -442,3 +442,24 @@ def test_identical_ndfs_everywhere_through_the_stages(tmp_path):
     truth = 0.7 * microfacet.ndf(SGRID.directions, 0.3, 0.3, 0.0)
     assert covered.sum() > (w[0] > 0).sum()                  # more than its own domain
     np.testing.assert_allclose(table[0][covered], truth[covered], rtol=2.0 ** -11)
+
+
+def test_every_turn_of_every_pair_of_complete_ndfs_by_fft_is_eq15_turned_sector_by_sector():
+    """turned_pairwise_distance (refine's materials test, one FFT per NDF) against pairwise_distance of each
+    NDF turned by rotate_tuple, whole sectors -6 .. 6: equal to 1e-12 of the largest distance, with the
+    empty NDF infinite against every other, never NaN; a lobe is 0 from its own turned copy at that turn."""
+    grid = DirectionGrid(12, 48)
+    rng = np.random.default_rng(3)
+    d = rng.random((6,) + grid.shape) ** 3
+    d[2] = 0.0                                                          # an empty NDF
+    d[4] = np.roll(d[1], -5, axis=-1)                                   # NDF 1 turned by 5 sectors
+    full = np.ones(grid.shape)
+    fft = synthesis.turned_pairwise_distance(d, grid, 6)
+    direct = np.stack([np.stack([synthesis.pairwise_distance(d, np.ones_like(d), t[None], full[None], grid)[:, 0]
+                                 for t in (synthesis.rotate_tuple(d[k], full, grid, float(s))[0]
+                                           for s in range(-6, 7))], axis=-1) for k in range(len(d))], axis=1)
+    assert fft.shape == (6, 6, 13) and not np.isnan(fft).any()
+    assert np.array_equal(np.isinf(fft), np.isinf(direct)) and np.isinf(fft[2]).all() and np.isinf(fft[:, 2]).all()
+    finite = np.isfinite(direct)
+    np.testing.assert_allclose(fft[finite], direct[finite], rtol=0, atol=1e-12 * direct[finite].max())
+    assert fft[4, 1, 6 + 5] < 1e-12 * direct[finite].max() and fft[4, 1].min() == fft[4, 1, 11]
