@@ -23,7 +23,7 @@ from scipy.optimize import least_squares, nnls
 
 from . import grid
 
-__all__ = ["KurtModel", "kurt_lobe", "kurt_evaluate", "kurt_evaluate_utia", "fit_kurt"]
+__all__ = ["KurtModel", "LobeGeometry", "kurt_lobe", "kurt_evaluate", "kurt_evaluate_utia", "fit_kurt"]
 
 
 @dataclass(frozen=True)
@@ -33,21 +33,43 @@ class KurtModel:
     lobes: tuple           # ((f0, mx, my, alpha), ...)
 
 
+@dataclass(frozen=True)
+class LobeGeometry:
+    """What a lobe's shape takes from the directions alone, computed once for every lobe and every step of a
+    fit: the half vector's tan^2 th_h and its cos^2 ph_h, cos^4 th_h, (1 - k.h)^5, 4 (k.h), (n.k1)(n.k2), and
+    where both directions are above the horizon."""
+    tan2: np.ndarray
+    cos2_phi: np.ndarray
+    cos4: np.ndarray
+    schlick: np.ndarray
+    four_kh: np.ndarray
+    cos_io: np.ndarray
+    above: np.ndarray
+
+    @classmethod
+    def of(cls, wi, wo) -> "LobeGeometry":
+        h = wi + wo
+        h = h / np.maximum(np.linalg.norm(h, axis=-1, keepdims=True), 1e-12)
+        ci, co = np.maximum(wi[..., 2], 1e-6), np.maximum(wo[..., 2], 1e-6)
+        ch = np.clip(h[..., 2], 1e-6, 1.0)
+        kh = np.clip(np.sum(wi * h, -1), 1e-6, 1.0)
+        sh2 = np.maximum(1 - ch * ch, 0.0)
+        r2 = h[..., 0] ** 2 + h[..., 1] ** 2
+        c2 = np.where(r2 > 0, h[..., 0] ** 2 / np.maximum(r2, 1e-300), 0.5)
+        return cls(tan2=sh2 / (ch * ch), cos2_phi=c2, cos4=ch ** 4, schlick=(1 - kh) ** 5, four_kh=4 * kh,
+                   cos_io=ci * co, above=(wi[..., 2] > 0) & (wo[..., 2] > 0))
+
+    def lobe(self, f0, mx, my, alpha) -> np.ndarray:
+        """One lobe's shape F D / (4 (k.h) ((n.k1)(n.k2))^alpha), ``(...)``; zero below the horizon."""
+        e = np.minimum(self.tan2 * (self.cos2_phi / mx ** 2 + (1 - self.cos2_phi) / my ** 2), 700.0)
+        D = np.exp(-e) / (np.pi * mx * my * self.cos4)
+        F = f0 + (1 - f0) * self.schlick
+        return np.where(self.above, F * D / (self.four_kh * self.cos_io ** alpha), 0.0)
+
+
 def kurt_lobe(wi, wo, f0, mx, my, alpha):
     """One lobe's shape F D / (4 (k.h) ((n.k1)(n.k2))^alpha), ``(...)``; zero below the horizon."""
-    h = wi + wo
-    h = h / np.maximum(np.linalg.norm(h, axis=-1, keepdims=True), 1e-12)
-    ci, co = np.maximum(wi[..., 2], 1e-6), np.maximum(wo[..., 2], 1e-6)
-    ch = np.clip(h[..., 2], 1e-6, 1.0)
-    kh = np.clip(np.sum(wi * h, -1), 1e-6, 1.0)
-    sh2 = np.maximum(1 - ch * ch, 0.0)
-    r2 = h[..., 0] ** 2 + h[..., 1] ** 2
-    c2 = np.where(r2 > 0, h[..., 0] ** 2 / np.maximum(r2, 1e-300), 0.5)
-    e = np.minimum(sh2 / (ch * ch) * (c2 / mx ** 2 + (1 - c2) / my ** 2), 700.0)
-    D = np.exp(-e) / (np.pi * mx * my * ch ** 4)
-    F = f0 + (1 - f0) * (1 - kh) ** 5
-    out = F * D / (4 * kh * (ci * co) ** alpha)
-    return np.where((wi[..., 2] > 0) & (wo[..., 2] > 0), out, 0.0)
+    return LobeGeometry.of(wi, wo).lobe(f0, mx, my, alpha)
 
 
 def kurt_evaluate(model, wi, wo):
@@ -92,14 +114,16 @@ def fit_kurt(brdf, n_lobes=2, max_nfev=40, phi_stride=2):
     def lobes_of(x):
         return [tuple(x[1 + 5 * i + 1:1 + 5 * i + 5]) for i in range(n_lobes)]
 
+    geometry = LobeGeometry.of(wi, wo)      # the directions' part of every lobe, once for the whole fit
+
     def resid(x):
-        f = x[0] / np.pi + sum(x[1 + 5 * i] * kurt_lobe(wi, wo, *lb) for i, lb in enumerate(lobes_of(x)))
+        f = x[0] / np.pi + sum(x[1 + 5 * i] * geometry.lobe(*lb) for i, lb in enumerate(lobes_of(x)))
         return np.cbrt(np.maximum(f, 0.0)) - Yc
 
     sol = least_squares(resid, np.array(x0), bounds=(lo, hi), method="trf", max_nfev=max_nfev,
                         x_scale="jac")
     lobes = lobes_of(sol.x)
-    A = np.stack([np.full(len(Y), 1 / np.pi)] + [kurt_lobe(wi, wo, *lb) for lb in lobes], 1)
+    A = np.stack([np.full(len(Y), 1 / np.pi)] + [geometry.lobe(*lb) for lb in lobes], 1)
     sw = 1.0 / np.maximum(np.cbrt(Y) ** 2, 1e-3)  # relative weighting, matches the cube-root fit
     coefs = np.array([nnls(A * sw[:, None], rgb[:, c] * sw, maxiter=200)[0] for c in range(3)])  # 3 channels
     model = KurtModel(kd=tuple(float(v) for v in coefs[:, 0]),
