@@ -57,14 +57,29 @@ def test_coverage_kernel_equals_scipy_map_coordinates():
     assert np.all(got[:, -1] == 0.0)                                 # parallel to the plane: never reaches it
 
 
-def test_light_plane_interpolation_equals_scipy_barycentric_weights():
+def dome_lights() -> np.ndarray:
+    """A light dome's directions (at infinity, homogeneous w = 0) down to 12 deg of elevation."""
+    g = DirectionGrid(8, 16).directions.reshape(-1, 3)
+    g = g[g[:, 2] > 0.2]
+    return np.column_stack([g, np.zeros(len(g))])
+
+
+@pytest.mark.parametrize("lights, own_directions", [("paper", False), ("paper", True), ("dome", False)])
+def test_light_plane_interpolation_equals_scipy_barycentric_weights(lights, own_directions):
     """Per point and direction: scipy's Delaunay point location and its own barycentric transform,
-    weights of invalid lights dropped and the rest renormalised, against the compiled sum (1e-12)."""
-    lights = paper_lights()
+    weights of invalid lights dropped and the rest renormalised, against the compiled walk and sum (1e-12);
+    on the paper's point lights with one set of directions or each point's own (a tilted shading frame's),
+    and on a dome's lights at infinity. Points in scattered order: long walks, from inside the hull to
+    hits beyond it."""
+    lights = paper_lights() if lights == "paper" else dome_lights()
     tri = LightTriangulation.from_lights(lights)
     rng = np.random.default_rng(5)
     points = np.column_stack([rng.uniform(-0.05, 0.05, 12), rng.uniform(0.05, 0.15, 12), np.zeros(12)])
     directions = DirectionGrid(16, 64).directions.reshape(-1, 3)
+    if own_directions:
+        tilted = directions[None] + np.column_stack([rng.uniform(-0.3, 0.3, (12, 2)), np.zeros(12)])[:, None] \
+            * directions[None, :, 2:]
+        directions = tilted / np.linalg.norm(tilted, axis=-1, keepdims=True)
     values = rng.random((12, len(lights)))
     valid = rng.random((12, len(lights))) > 0.2
     got, defined = tri.interpolate(values, valid, points, directions)
@@ -72,7 +87,7 @@ def test_light_plane_interpolation_equals_scipy_barycentric_weights():
     want, want_defined = np.zeros(got.shape), np.zeros(got.shape, bool)
     for a in range(len(points)):
         simplex = tri.triangulation.find_simplex(xy[a])
-        for n in np.flatnonzero((simplex >= 0) & up):
+        for n in np.flatnonzero((simplex >= 0) & up[min(a, len(up) - 1)]):
             s = simplex[n]
             b = tri.triangulation.transform[s, :2] @ (xy[a, n] - tri.triangulation.transform[s, 2])
             weights = np.append(b, 1 - b.sum()) * valid[a, tri.triangulation.simplices[s]]

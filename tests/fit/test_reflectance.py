@@ -45,6 +45,44 @@ def test_push_pull_fills_holes_without_nan_and_keeps_dense_data():
     assert np.all(empty == 0)                                     # no sample at all: zeros, not NaN
 
 
+def pyramid_push_pull(value_sum, weight_sum):
+    """Gortler et al. 1996 written out with numpy's own interpolation: pull (2 x 2 sums, weights clamped to 1;
+    an odd last ring or sector alone), then at each level weight value + (1 - weight) times the coarser level
+    interpolated at the fine cells' centres, theta clamped (np.interp), phi periodic (np.interp's period)."""
+    weight = np.minimum(weight_sum, 1.0)
+    value = np.divide(value_sum, weight_sum, out=np.zeros_like(value_sum), where=weight_sum > 0)
+    n_theta, n_phi = value.shape[-2:]
+    if n_theta == n_phi == 1:
+        return value
+
+    def pool(a):
+        for axis, n in ((-2, n_theta), (-1, n_phi)):
+            if n > 1:
+                pad = [(0, 0)] * a.ndim
+                pad[axis] = (0, n % 2)
+                a = np.pad(a, pad)
+                a = np.take(a, np.arange(0, a.shape[axis], 2), axis) + np.take(a, np.arange(1, a.shape[axis], 2), axis)
+        return a
+
+    coarse = pyramid_push_pull(pool(weight * value), pool(weight))
+    m_theta, m_phi = coarse.shape[-2:]
+    at = (np.arange(n_theta) + 0.5) / 2 - 0.5 if m_theta < n_theta else np.arange(n_theta, dtype=float)
+    up = np.apply_along_axis(lambda c: np.interp(at, np.arange(m_theta), c), -2, coarse)
+    at = (np.arange(n_phi) + 0.5) / 2 - 0.5 if m_phi < n_phi else np.arange(n_phi, dtype=float)
+    up = np.apply_along_axis(lambda c: np.interp(at, np.arange(m_phi), c, period=m_phi), -1, up)
+    return weight * value + (1.0 - weight) * up
+
+
+@pytest.mark.parametrize("shape", [(3, 24, 96), (2, 33, 17), (2, 1, 7), (2, 7, 1), (2, 2, 5, 12)])
+def test_push_pull_is_the_pyramid_written_out(shape):
+    """The compiled push against the pyramid written out with numpy's interpolation, on even and odd grids, a
+    single ring or sector, and two leading axes (1e-12)."""
+    rng = np.random.default_rng(2)
+    weight = np.where(rng.random(shape) > 0.4, 2.0 * rng.random(shape), 0.0)
+    value_sum = rng.random(shape) * weight
+    np.testing.assert_allclose(push_pull(value_sum, weight), pyramid_push_pull(value_sum, weight), rtol=0, atol=1e-12)
+
+
 @pytest.mark.parametrize("alpha_u, alpha_v, phi", [(0.3, 0.3, 0.0), (0.2, 0.45, 0.7), (0.5, 0.15, 2.0)])
 def test_eq5_on_a_tabulated_ndf_matches_closed_form_smith(alpha_u, alpha_v, phi):
     grid = DirectionGrid(64, 256)

@@ -10,6 +10,7 @@ phi. Vectorised over any leading dimensions (points).
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 from ..geometry.grid import DirectionGrid
@@ -53,10 +54,8 @@ def push_pull(value_sum: np.ndarray, weight_sum: np.ndarray) -> np.ndarray:
     value = np.divide(value_sum, weight_sum, out=np.zeros_like(value_sum), where=weight_sum > 0)
     if value.shape[-2] == 1 and value.shape[-1] == 1:
         return value
-    coarse_value_sum = _pool(weight * value)
-    coarse_weight = _pool(weight)
-    coarse = push_pull(coarse_value_sum, coarse_weight)
-    return weight * value + (1.0 - weight) * _upsample(coarse, value.shape[-2:])
+    coarse = push_pull(_pool(weight * value), _pool(weight))
+    return _push(weight, value, coarse)
 
 
 def _pool(a: np.ndarray) -> np.ndarray:
@@ -73,18 +72,24 @@ def _pool(a: np.ndarray) -> np.ndarray:
     return a
 
 
-def _upsample(a: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """Linear interpolation from a coarse level to ``shape``: theta clamped, phi periodic."""
-    a = _resize_axis(a, shape[0], axis=-2, periodic=False)
-    return _resize_axis(a, shape[1], axis=-1, periodic=True)
+def _push(weight: np.ndarray, value: np.ndarray, coarse: np.ndarray) -> np.ndarray:
+    """weight value + (1 - weight) coarse, the coarse level (..., m_T, m_F) linearly interpolated to the fine
+    one's cells (:func:`_axis_weights`: theta clamped, then phi periodic), in one compiled pass per point."""
+    shape = value.shape
+    points = (-1,) + shape[-2:]
+    out = _push_points(np.broadcast_to(weight, shape).reshape(points), value.reshape(points),
+                       coarse.reshape((-1,) + coarse.shape[-2:]),
+                       *_axis_weights(coarse.shape[-2], shape[-2], periodic=False),
+                       *_axis_weights(coarse.shape[-1], shape[-1], periodic=True))
+    return out.reshape(shape)
 
 
-def _resize_axis(a: np.ndarray, n: int, axis: int, periodic: bool) -> np.ndarray:
-    """Linear interpolation along ``axis`` from the level :func:`_pool` made (m = ceil(n / 2) cells, coarse
-    cell j over fine cells 2j, 2j + 1) back to n cells."""
-    m = a.shape[axis]
+def _axis_weights(m: int, n: int, periodic: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Linear interpolation along an axis from the level :func:`_pool` made (m = ceil(n / 2) cells, coarse
+    cell j over fine cells 2j, 2j + 1) back to n cells: per fine cell, its two coarse cells and the second's
+    weight (m = n: the cell itself)."""
     if m == n:
-        return a
+        return np.arange(n), np.arange(n), np.zeros(n)
     if m != (n + 1) // 2:
         raise ValueError(f"push-pull level of {m} cells does not pool {n}")
     x = (np.arange(n) + 0.5) / 2 - 0.5              # fine cell centres in coarse coordinates
@@ -97,7 +102,22 @@ def _resize_axis(a: np.ndarray, n: int, axis: int, periodic: bool) -> np.ndarray
         i0, i1 = i0 % m, i1 % m
     else:
         i1 = np.minimum(i1, m - 1)
-    shape = [1] * a.ndim
-    shape[axis] = n
-    f = f.reshape(shape)
-    return (1 - f) * np.take(a, i0, axis=axis) + f * np.take(a, i1, axis=axis)
+    return i0, i1, f
+
+
+@numba.njit(cache=True, nogil=True)
+def _push_points(weight: np.ndarray, value: np.ndarray, coarse: np.ndarray, t0: np.ndarray, t1: np.ndarray,
+                 ft: np.ndarray, p0: np.ndarray, p1: np.ndarray, fp: np.ndarray) -> np.ndarray:
+    """:func:`_push` on (P, T, F) levels: the coarse level interpolated along theta, then phi, and blended."""
+    n_points, n_theta, n_phi = value.shape
+    out = np.empty_like(value)
+    rings = np.empty((n_theta, coarse.shape[2]))
+    for a in range(n_points):
+        for i in range(n_theta):
+            for k in range(coarse.shape[2]):
+                rings[i, k] = (1 - ft[i]) * coarse[a, t0[i], k] + ft[i] * coarse[a, t1[i], k]
+        for i in range(n_theta):
+            for j in range(n_phi):
+                up = (1 - fp[j]) * rings[i, p0[j]] + fp[j] * rings[i, p1[j]]
+                out[a, i, j] = weight[a, i, j] * value[a, i, j] + (1.0 - weight[a, i, j]) * up
+    return out

@@ -28,6 +28,7 @@ triangulation interpolates between neighbouring directions as on the sphere.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numba
@@ -102,13 +103,94 @@ class LightTriangulation:
         (values (P, N), defined (P, N)): ``defined`` is False beyond the
         lights' hull, for directions that never reach the lights' plane, and
         where every light of the triangle is invalid; there the value is 0.
+
+        One compiled pass: each hit is computed, located and summed without an array of hits (P, N, 2).
+        The triangle is found by walking from the one the same direction hit from the point before (a
+        neighbouring point: a step or none), as scipy's ``find_simplex`` walks from its last query; a
+        triangulation with degenerate triangles (no barycentric transform) is left to ``find_simplex``.
         """
-        n_points, n_dirs = len(points), np.shape(directions)[-2]
-        xy, up = self.hits(np.asarray(points, float), np.asarray(directions, float))
-        simplex = self.triangulation.find_simplex(xy.reshape(-1, 2)).reshape(n_points, n_dirs)
-        simplex[~np.broadcast_to(up, simplex.shape)] = -1
-        return _barycentric_sum(np.asarray(values, float), np.asarray(valid, bool), xy, simplex,
-                                self.triangulation.transform, self.triangulation.simplices)
+        values, valid = np.asarray(values, float), np.asarray(valid, bool)
+        points, directions = np.asarray(points, float), np.asarray(directions, float)
+        tri = self.triangulation
+        if np.isnan(tri.transform).any():
+            xy, up = self.hits(points, directions)
+            simplex = tri.find_simplex(xy.reshape(-1, 2)).reshape(xy.shape[:2])
+            simplex[~np.broadcast_to(up, simplex.shape)] = -1
+            return _barycentric_sum(values, valid, xy, simplex, tri.transform, tri.simplices)
+        return _interpolate(values, valid, seen_from(points, self.at_infinity),
+                            directions if directions.ndim == 3 else directions[None], self.height,
+                            tri.transform, tri.simplices, tri.neighbors, self.bounds)
+
+    @functools.cached_property
+    def bounds(self) -> np.ndarray:
+        """(x min, y min, x max, y max) of the lights in their plane, widened by 1e-9 of their extent: a hit
+        beyond it is beyond the hull without a walk to its edge."""
+        low, high = self.triangulation.min_bound, self.triangulation.max_bound
+        margin = 1e-9 * float(np.max(high - low))
+        return np.concatenate([low - margin, high + margin])
+
+
+INSIDE = 100 * np.finfo(float).eps    # scipy's find_simplex tolerance on the barycentric coordinates
+
+
+@numba.njit(cache=True, nogil=True)
+def _interpolate(values: np.ndarray, valid: np.ndarray, seen_from: np.ndarray, directions: np.ndarray,
+                 height: float, transform: np.ndarray, vertices: np.ndarray,
+                 neighbours: np.ndarray, bounds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:meth:`LightTriangulation.interpolate` for points seen from ``seen_from`` (P, 3) and directions (1 or P,
+    N, 3): each hit X = x + (h - x_z) i / i_z (:meth:`LightTriangulation.hits`), its triangle by a visibility
+    walk over the triangles' ``neighbours`` (the k-th opposite vertex k; -1 beyond the hull: a Delaunay
+    triangulation is convex, so a walk that would leave it started outside; a hit beyond ``bounds`` is not
+    walked), and :func:`_barycentric_sum`'s weights."""
+    n_points, n_dirs = seen_from.shape[0], directions.shape[1]
+    per_point = directions.shape[0] > 1
+    out = np.zeros((n_points, n_dirs))
+    defined = np.zeros((n_points, n_dirs), np.bool_)
+    start = first = 0     # where a walk starts: the triangle of the point's hit before, or of its first direction
+    for a in range(n_points):                                          # from the point before
+        start = first
+        px, py, pz = seen_from[a, 0], seen_from[a, 1], seen_from[a, 2]
+        d = directions[a] if per_point else directions[0]
+        for n in range(n_dirs):
+            if not d[n, 2] > UP:
+                continue
+            t = (height - pz) / d[n, 2]
+            x, y = px + t * d[n, 0], py + t * d[n, 1]
+            if not (bounds[0] <= x <= bounds[2] and bounds[1] <= y <= bounds[3]):
+                continue
+            s = start
+            for _ in range(transform.shape[0]):
+                dx, dy = x - transform[s, 2, 0], y - transform[s, 2, 1]
+                b0 = transform[s, 0, 0] * dx + transform[s, 0, 1] * dy
+                b1 = transform[s, 1, 0] * dx + transform[s, 1, 1] * dy
+                b2 = 1.0 - b0 - b1
+                worst, lowest = 0, b0
+                if b1 < lowest:
+                    worst, lowest = 1, b1
+                if b2 < lowest:
+                    worst, lowest = 2, b2
+                if lowest >= -INSIDE:
+                    break
+                s = neighbours[s, worst]
+                if s < 0:
+                    break
+            else:
+                s = -1                             # no triangle after as many steps as there are: none
+            if s < 0 or lowest < -INSIDE:
+                continue
+            start = s
+            if n == 0:
+                first = s
+            total = value = 0.0
+            for k, b in ((0, b0), (1, b1), (2, b2)):
+                light = vertices[s, k]
+                if valid[a, light]:
+                    total += b
+                    value += b * values[a, light]
+            if total > 1e-9:
+                out[a, n] = value / total
+                defined[a, n] = True
+    return out, defined
 
 
 @numba.njit(cache=True, nogil=True)
