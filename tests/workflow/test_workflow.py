@@ -57,13 +57,24 @@ def metrics(workdir: Path, sample: str, stage: str) -> dict:
     return json.loads((workdir / "results" / sample / stage / "metrics.json").read_text())
 
 
+def rectify_scores(manifest: Path, folder: Path) -> dict:
+    """Rule score_rectify's scores of rectify's output in ``folder`` (:func:`conftest.rectify_into`)."""
+    from facetsynth.stages import score_rectify
+    score_rectify.run(score_rectify.Inputs(manifest=manifest, geometry=folder / "geometry.json",
+                                           frames=folder / "frames"),
+                      score_rectify.Outputs(scores=folder / "truth.json"))
+    return json.loads((folder / "truth.json").read_text())
+
+
 def test_noise_free_demo_meets_the_accuracy_targets(demo_run):
     hdr, rectify = metrics(demo_run, "demo", "hdr"), metrics(demo_run, "demo", "rectify")
+    scores = json.loads((demo_run / "results/demo/truth/rectify.json").read_text())   # rule score_rectify
     assert hdr["ground_truth"] and hdr["frames"] == 1360
     assert hdr["median_rel_error"] <= 0.01          # issue 2: HDR merge against the true radiance
-    assert rectify["registration_error_px"] <= 0.5   # issue 2: marker registration, rectified pixels
-    assert rectify["markers_found"] == 4
-    assert rectify["radiance_median_rel_error"] <= 0.01
+    assert scores["ground_truth"] and rectify["ground_truth"]
+    assert scores["registration_error_px"] <= 0.5   # issue 2: marker registration, rectified pixels
+    assert scores["markers_found"] == 4
+    assert scores["radiance_median_rel_error"] <= 0.01
     for stage in ("capture", "hdr", "rectify", "separate", "resample", "partial_ndf"):   # time and memory
         assert (demo_run / f"results/demo/benchmarks/{stage}.tsv").read_text().startswith("s\th:m:s\tmax_rss")
     geometry = json.loads((demo_run / "results/demo/rectify/geometry.json").read_text())
@@ -220,10 +231,12 @@ def test_noisy_capture_stays_within_three_times_the_targets(repo, tmp_path):
             tmp_path / "capture", seed=1, noise=True)
     hdr.run(hdr.Inputs(capture=tmp_path / "capture"), hdr_outputs(tmp_path / "hdr"))
     rect = rectify_into(tmp_path / "hdr/manifest.json", tmp_path / "rect", 48)
+    rect.update(rectify_scores(tmp_path / "hdr/manifest.json", tmp_path / "rect"))
     assert json.loads((tmp_path / "hdr/metrics.json").read_text())["median_rel_error"] <= 0.03
     assert rect["registration_error_px"] <= 1.5
     # resolution auto (issue 14): as many cells as pixels see the sample; the tiny rig's 120 x 80 camera: 84
     auto = rectify_into(tmp_path / "hdr/manifest.json", tmp_path / "auto", "auto")
+    auto.update(rectify_scores(tmp_path / "hdr/manifest.json", tmp_path / "auto"))
     assert (auto["cols"], auto["rows"], auto["resolution_rule"]) == (84, 84, "auto")
     assert auto["registration_error_px"] <= 1.5 * 84 / 48           # the same error in metres, finer cells
 
@@ -259,7 +272,8 @@ def test_import_enters_the_same_pipeline(repo, tmp_path, foreign_capture):
     assert np.isfinite(tables.load(workdir / "results/mine/partial_ndf/ndf", "ndf")).all()
     assert (workdir / "results/mine/svbrdf/model.json").is_file()          # the fitted SVBRDF ...
     assert metrics(workdir, "mine", "stencil_fit")["ground_truth"] is False  # ... and its stencil models
-    assert not (workdir / "results/mine/validate").exists()                # no truth to hold out
+    assert not (workdir / "results/mine/validate").exists()                # no truth to hold out ...
+    assert not (workdir / "results/mine/truth").exists()                   # ... nor to score (score_rectify)
     # issue 29: every capture's self-check, without truth: every 10th light (from the 5th) never reached a stage
     # after hdr, and the fit predicts those lights and relights every 8th of the others
     held = selfcheck.heldout_lights(30, 10)
@@ -281,6 +295,15 @@ def jobs_to_run(workdir: Path, target: str) -> set[str]:
     done = snakemake(workdir, target, "--dry-run", "--quiet", "rules")
     assert done.returncode == 0, done.stderr[-3000:]
     return set(re.findall(r"^(\w+)\s+\d+\s*$", done.stdout, re.M)) - {"total"}
+
+
+def test_a_virtual_samples_truth_is_scored_beside_the_fit(repo, tmp_path):
+    """Issue 31: rectify's frames are scored against a virtual sample's truth in a job of their own, which the
+    default target runs and nothing of the fit waits for (an imported capture, without truth, has none:
+    test_import_enters_the_same_pipeline)."""
+    workdir = make_workdir(repo, tmp_path, "demo\tvirtual\tresources/scenes/demo.yaml\t\n")
+    assert "score_rectify" in jobs_to_run(workdir, "all")
+    assert "score_rectify" not in jobs_to_run(workdir, "results/demo/refine/metrics.json")
 
 
 def test_editing_an_imported_capture_reruns_it_from_capture(repo, tmp_path, foreign_capture):

@@ -281,7 +281,7 @@ def rig_calibration(row):
 def final_outputs(sample):
     """What a user takes away: the fitted SVBRDF with its stencil models and self-check, and for a sample whose
     held-out views the virtual rig can render (a virtual one, or the rig with the virtual camera)
-    the held-out validation."""
+    the held-out validation; a virtual sample's rectified frames scored against its truth."""
     # every sample: the fit against its own frames
     outputs = [
         f"results/{sample}/svbrdf",
@@ -290,6 +290,8 @@ def final_outputs(sample):
     ]
     if rendered_truth(sample) is not None:
         outputs.append(f"results/{sample}/validate/metrics.json")
+    if SAMPLE_SHEET[sample]["source"] == "virtual":  # its truth: scored beside the fit (issue 31)
+        outputs.append(f"results/{sample}/truth/rectify.json")
     outputs.append(f"results/{sample}/export/metrics.json")  # the portable glTF material and its loss
     outputs += report_figures(sample)  # the figures of `snakemake --report` (workflow/rules/report.smk)
     return outputs

@@ -21,3 +21,21 @@ rule rectify:
         filter=config["rectify"]["filter"],
     script:
         "../scripts/rectify.py"
+
+
+rule score_rectify:  # a virtual sample's registration and rectified radiance against its truth, beside the fit
+    input:
+        manifest="results/{sample}/hdr/manifest.json",
+        geometry="results/{sample}/rectify/geometry.json",
+        frames="results/{sample}/rectify/frames",
+    output:
+        scores="results/{sample}/truth/rectify.json",
+    log:
+        "results/{sample}/logs/score_rectify.log",
+    benchmark:
+        "results/{sample}/benchmarks/score_rectify.tsv"
+    threads: 1
+    resources:
+        mem_mb=1000,
+    script:
+        "../scripts/score_rectify.py"

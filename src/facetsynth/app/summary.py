@@ -4,7 +4,8 @@ One line per stage in pipeline order: done (its ``metrics.json`` is there)
 with its key figures, or not yet. Then the warnings: every stage's
 ``degenerate`` reason and the ``WARNING`` lines of the stage logs
 (``results/SAMPLE/logs/``), each once. Figures against ground truth appear
-only where the stage had the truth (virtual samples).
+only where the stage had the truth (virtual samples): in its metrics, or
+scored beside the fit in ``truth/STAGE.json`` (rectify's registration).
 """
 
 from __future__ import annotations
@@ -153,6 +154,9 @@ def summarise(sample_dir: str | Path) -> list[str]:
             lines.append(f"  {stage:<{width}}  -")
             continue
         metrics = _read_json(done[stage])
+        truth = sample_dir / "truth" / f"{stage}.json"       # scored beside the fit (rule score_STAGE)
+        if truth.is_file():
+            metrics = {**metrics, **_read_json(truth)}
         lines.append(f"  {stage:<{width}}  done: " + (", ".join(_figures(metrics, spec, done[stage]))
                                                       or "no figures"))
         if metrics.get("degenerate"):

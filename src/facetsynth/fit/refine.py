@@ -54,17 +54,32 @@ class NormalSums:
     def of(cls, point: np.ndarray, n_points: int, y: np.ndarray, g: np.ndarray, u: np.ndarray) -> "NormalSums":
         """Accumulate samples: ``point`` (S,) index in [0, n_points), ``y`` (S, 3) observed rho, ``g`` (S,)
         the specular factor, ``u`` (S, 3) weights."""
-        def total(values):      # float even without samples (bincount of nothing is an int array)
-            return np.stack([np.bincount(point, values[:, c], minlength=n_points) for c in range(3)],
-                            -1).astype(float)
-        gg = g[:, None]
-        return cls(total(u), total(u * gg), total(u * gg * gg), total(u * y), total(u * gg * y), total(u * y * y))
+        return cls(*_sample_sums(np.asarray(point, np.intp), n_points, np.asarray(y, float), np.asarray(g, float),
+                                 np.asarray(u, float)))
 
     def sse(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """(N, 3) weighted sum of squared residuals of rho = a + b g (expanded: no second pass)."""
         out = (self.uyy - 2 * a * self.uy - 2 * b * self.ugy + a * a * self.u + 2 * a * b * self.ug
                + b * b * self.ugg)
         return np.maximum(out, 0.0)
+
+
+@numba.njit(cache=True, nogil=True)
+def _sample_sums(point: np.ndarray, n_points: int, y: np.ndarray, g: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """:meth:`NormalSums.of`'s six sums (6, N, 3) in one pass over the samples, each added in the samples' order
+    (as numpy's bincount adds them: the same sums to the bit)."""
+    out = np.zeros((6, n_points, 3))
+    for s in range(point.size):
+        x, gs = point[s], g[s]
+        for c in range(3):
+            us, ys = u[s, c], y[s, c]
+            out[0, x, c] += us
+            out[1, x, c] += us * gs
+            out[2, x, c] += us * gs * gs
+            out[3, x, c] += us * ys
+            out[4, x, c] += us * gs * ys
+            out[5, x, c] += us * ys * ys
+    return out
 
 
 def solve(sums: NormalSums, a0: np.ndarray, b0: np.ndarray, ridge: float) -> tuple[np.ndarray, np.ndarray]:

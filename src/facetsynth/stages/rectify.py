@@ -9,7 +9,6 @@ from pathlib import Path
 import numpy as np
 
 from ..capture import manifest
-from ..evaluation.rectify import truth_scores
 from ..io.fileio import atomic_dir, file_key, read_frame, write_exr, write_json
 from ..io.frames import map_frames
 from ..io.errors import InputError
@@ -42,8 +41,8 @@ class Settings(StageSettings):
 
 def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threads: int = 1) -> None:
     """Load, warp, write: every HDR frame of ``inputs.manifest`` onto a ``settings.resolution``-cell-wide grid
-    over the sample; for a virtual capture, the registration and the rectified radiance scored against the
-    truth (:func:`facetsynth.evaluation.rectify.truth_scores`).
+    over the sample. A virtual capture's registration and rectified radiance are scored against its truth by
+    rule ``score_rectify`` (:mod:`facetsynth.stages.score_rectify`), beside the fit.
 
     ``resolution`` "auto": the grid with as many cells as camera pixels see the sample
     (:func:`facetsynth.capture.rectify.native_resolution`), logged; ``resolution_rule`` in the metrics says which.
@@ -63,7 +62,7 @@ def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threa
     write_geometry(capture, camera, grid, visible, frames, Path(outputs.geometry))
     metrics = {"ground_truth": manifest.has_truth(capture), "cols": grid.cols, "rows": grid.rows,
                "resolution_rule": rule, "visible_fraction": float(visible.mean())}
-    write_json(outputs.metrics, {**metrics, **truth_scores(capture, camera, grid, visible, Path(outputs.frames))})
+    write_json(outputs.metrics, metrics)
 
 
 def plane_grid(capture: dict, camera: Camera, resolution: int | str, manifest_path: Path) -> tuple[PlaneGrid, str]:
