@@ -181,16 +181,23 @@ def _interpolate(values: np.ndarray, valid: np.ndarray, seen_from: np.ndarray, d
             start = s
             if n == 0:
                 first = s
-            total = value = 0.0
-            for k, b in ((0, b0), (1, b1), (2, b2)):
-                light = vertices[s, k]
-                if valid[a, light]:
-                    total += b
-                    value += b * values[a, light]
-            if total > 1e-9:
-                out[a, n] = value / total
-                defined[a, n] = True
+            _weigh(out, defined, values, valid, vertices, a, n, s, b0, b1, b2)
     return out, defined
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _weigh(out, defined, values, valid, vertices, a, n, s, b0, b1, b2) -> None:
+    """out[a, n]: point a's valid samples at triangle s's corners, weighted by b0, b1, b2 renormalised over the
+    valid ones (defined where their weights sum above 1e-9)."""
+    total = value = 0.0
+    for k, b in ((0, b0), (1, b1), (2, b2)):
+        light = vertices[s, k]
+        if valid[a, light]:
+            total += b
+            value += b * values[a, light]
+    if total > 1e-9:
+        out[a, n] = value / total
+        defined[a, n] = True
 
 
 @numba.njit(cache=True, nogil=True)
@@ -210,13 +217,5 @@ def _barycentric_sum(values: np.ndarray, valid: np.ndarray, xy: np.ndarray, simp
             dx, dy = xy[a, n, 0] - transform[s, 2, 0], xy[a, n, 1] - transform[s, 2, 1]
             b0 = transform[s, 0, 0] * dx + transform[s, 0, 1] * dy
             b1 = transform[s, 1, 0] * dx + transform[s, 1, 1] * dy
-            total = value = 0.0
-            for k, b in ((0, b0), (1, b1), (2, 1.0 - b0 - b1)):
-                light = vertices[s, k]
-                if valid[a, light]:
-                    total += b
-                    value += b * values[a, light]
-            if total > 1e-9:
-                out[a, n] = value / total
-                defined[a, n] = True
+            _weigh(out, defined, values, valid, vertices, a, n, s, b0, b1, 1.0 - b0 - b1)
     return out, defined

@@ -107,11 +107,13 @@ def samples(capture: RectifiedCapture, specular, valid, index: np.ndarray) -> tu
     wi, r2 = capture.light_directions(index)
     rho_s = np.asarray(specular[index], np.float32)
     ok = np.asarray(valid[index], bool) & (wi[..., 2] > 0) & capture.visible[index][:, None]
-    ok &= np.isfinite(rho_s).all(axis=-1)
+    ok &= np.isfinite(rho_s.sum(axis=-1))         # three half floats' sum: infinite or NaN only with one of them
     pp, ff = np.nonzero(ok)
-    u = radiance_weights(wi[pp, ff], r2[pp, ff], capture.light_intensities[ff])
+    at = np.flatnonzero(ok)                          # the samples as flat (point, light) rows: one gather each
+    wi = wi.reshape(-1, 3)[at]
+    u = radiance_weights(wi, r2.ravel()[at], capture.light_intensities[ff])
     views = capture.view_directions(True, index)
-    return pp, ff, wi[pp, ff], u, rho_s[pp, ff].astype(float), views
+    return pp, ff, wi, u, rho_s.reshape(-1, 3)[at].astype(float), views
 
 
 def stretched(model: SVBRDF, s: np.ndarray) -> SVBRDF:
