@@ -130,6 +130,8 @@ def test_inspect_lists_stages_figures_and_warnings(tmp_path, capsys):
                                          "degenerate": "no specular signal at 99 % of the points"})):
         (sample / stage).mkdir(parents=True)
         (sample / stage / "metrics.json").write_text(json.dumps(metrics))
+    (sample / "truth").mkdir()                     # rule score_rectify's scores, beside the fit (issue 31)
+    (sample / "truth" / "rectify.json").write_text(json.dumps({"ground_truth": True, "registration_error_px": 0.071}))
     (sample / "logs").mkdir()
     (sample / "logs" / "hdr.log").write_text("2026-12-03 01:00:00,000 INFO facetsynth.stages.hdr: merged\n"
                                              "2026-12-03 01:00:01,000 WARNING facetsynth.stages.hdr: 3 dark "
@@ -138,7 +140,7 @@ def test_inspect_lists_stages_figures_and_warnings(tmp_path, capsys):
     assert lines[0] == f"{sample}: 3 of 14 stages done"
     assert any(line.split() == ["hdr", "done:", "frames", "480,", "saturated", "pixels", "12,", "dark", "frames",
                                 "0"] for line in lines)
-    assert any("168x160 points (auto)" in line for line in lines)
+    assert any("168x160 points (auto), registration 0.07 px" in line for line in lines)
     assert any(line.split()[:2] == ["capture", "-"] for line in lines)
     assert "2 warning(s):" in lines
     assert "  separate: degenerate: no specular signal at 99 % of the points" in lines
