@@ -105,9 +105,10 @@ class LightTriangulation:
         where every light of the triangle is invalid; there the value is 0.
 
         One compiled pass: each hit is computed, located and summed without an array of hits (P, N, 2).
-        The triangle is found by walking from the one the same direction hit from the point before (a
-        neighbouring point: a step or none), as scipy's ``find_simplex`` walks from its last query; a
-        triangulation with degenerate triangles (no barycentric transform) is left to ``find_simplex``.
+        Its triangle is found by walking from the triangle of the point's previous direction (the grid's
+        next cell: a step or none), as scipy's ``find_simplex`` walks from its last query, the same
+        triangle as scipy's; a triangulation with degenerate triangles (no barycentric transform) is left
+        to ``find_simplex``.
         """
         values, valid = np.asarray(values, float), np.asarray(valid, bool)
         points, directions = np.asarray(points, float), np.asarray(directions, float)
@@ -146,8 +147,8 @@ def _interpolate(values: np.ndarray, valid: np.ndarray, seen_from: np.ndarray, d
     per_point = directions.shape[0] > 1
     out = np.zeros((n_points, n_dirs))
     defined = np.zeros((n_points, n_dirs), np.bool_)
-    start = first = 0     # where a walk starts: the triangle of the point's hit before, or of its first direction
-    for a in range(n_points):                                          # from the point before
+    start = first = 0     # where a walk starts: the triangle of the point's previous direction's hit; for its
+    for a in range(n_points):  # first direction, that of the point before
         start = first
         px, py, pz = seen_from[a, 0], seen_from[a, 1], seen_from[a, 2]
         d = directions[a] if per_point else directions[0]
