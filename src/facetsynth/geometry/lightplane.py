@@ -177,7 +177,7 @@ def _interpolate(values: np.ndarray, valid: np.ndarray, seen_from: np.ndarray, d
                     break
             else:
                 s = -1                             # no triangle after as many steps as there are: none
-            if s < 0 or lowest < -INSIDE:
+            if s < 0:
                 continue
             start = s
             if n == 0:

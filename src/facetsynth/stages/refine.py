@@ -108,8 +108,8 @@ def samples(capture: RectifiedCapture, specular, valid, index: np.ndarray) -> tu
     rho_s = np.asarray(specular[index], np.float32)
     ok = np.asarray(valid[index], bool) & (wi[..., 2] > 0) & capture.visible[index][:, None]
     ok &= np.isfinite(rho_s.sum(axis=-1))         # three half floats' sum: infinite or NaN only with one of them
-    pp, ff = np.nonzero(ok)
     at = np.flatnonzero(ok)                          # the samples as flat (point, light) rows: one gather each
+    pp, ff = np.divmod(at, ok.shape[1])
     wi = wi.reshape(-1, 3)[at]
     u = radiance_weights(wi, r2.ravel()[at], capture.light_intensities[ff])
     views = capture.view_directions(True, index)

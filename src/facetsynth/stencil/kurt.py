@@ -23,7 +23,7 @@ from scipy.optimize import least_squares, nnls
 
 from . import grid
 
-__all__ = ["KurtModel", "LobeGeometry", "kurt_lobe", "kurt_evaluate", "kurt_evaluate_utia", "fit_kurt"]
+__all__ = ["KurtModel", "LobeGeometry", "kurt_evaluate", "kurt_evaluate_utia", "fit_kurt"]
 
 
 @dataclass(frozen=True)
@@ -67,18 +67,13 @@ class LobeGeometry:
         return np.where(self.above, F * D / (self.four_kh * self.cos_io ** alpha), 0.0)
 
 
-def kurt_lobe(wi, wo, f0, mx, my, alpha):
-    """One lobe's shape F D / (4 (k.h) ((n.k1)(n.k2))^alpha), ``(...)``; zero below the horizon."""
-    return LobeGeometry.of(wi, wo).lobe(f0, mx, my, alpha)
-
-
 def kurt_evaluate(model, wi, wo):
     wi, wo = np.broadcast_arrays(np.asarray(wi, float), np.asarray(wo, float))
     out = np.asarray(model.kd, float) / np.pi * np.ones(wi.shape[:-1] + (1,))
+    geometry = LobeGeometry.of(wi, wo)
     for ks, lobe in zip(model.ks, model.lobes):
-        out = out + kurt_lobe(wi, wo, *lobe)[..., None] * np.asarray(ks, float)
-    ok = (wi[..., 2] > 0) & (wo[..., 2] > 0)
-    return np.nan_to_num(np.where(ok[..., None], np.maximum(out, 0.0), 0.0))
+        out = out + geometry.lobe(*lobe)[..., None] * np.asarray(ks, float)
+    return np.nan_to_num(np.where(geometry.above[..., None], np.maximum(out, 0.0), 0.0))
 
 
 def kurt_evaluate_utia(model):
