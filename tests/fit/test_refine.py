@@ -134,7 +134,7 @@ def test_frame_scores_against_known_errors():
 from facetsynth.models import microfacet  # noqa: E402
 from facetsynth.geometry.grid import DirectionGrid  # noqa: E402
 from facetsynth.fit.params import normalise  # noqa: E402
-from facetsynth.fit.refine import best_turns, stretch  # noqa: E402
+from facetsynth.fit.refine import _turn_error, _turn_errors, best_turns, stretch  # noqa: E402
 from facetsynth.stages.refine import ladder_minimum  # noqa: E402
 
 
@@ -231,6 +231,29 @@ def test_best_turns_finds_a_turn_between_whole_sectors():
     whole, _, k_whole = best_turns(offsets, t, p, denom, r, u, np.array([[0]], np.int64), table, grid.n_theta,
                                    grid.n_phi, 2)     # 2.4 is beyond a window of 2: the window's end, whole
     assert k_whole[0] == 2 and err[0] < 0.5 * whole[0]
+
+
+def test_every_whole_turn_in_one_pass_equals_each_turn_alone():
+    """best_turns reads each sample's two rings once for all 2 window + 1 whole turns (fit.refine._turn_errors,
+    4.7 x faster on refine's tiles); each turn's error equals the one pass per turn it replaced
+    (_turn_error) to rounding: across phi's wrap, beyond the first and last ring (clamped), with samples
+    whose g is 0."""
+    grid = DirectionGrid(12, 40)
+    table = np.random.default_rng(2).uniform(0.0, 3.0, grid.n_theta * grid.n_phi)
+    table[:grid.n_phi] = 0.0                               # a ring of zeros: some g = 0
+    rng = np.random.default_rng(4)
+    n, window = 500, 10
+    t = rng.uniform(-1.0, grid.n_theta + 0.5, n)
+    p = rng.uniform(-0.5, grid.n_phi - 0.5, n)
+    p[:50] = rng.uniform(-0.5, 0.5, 50)                   # at the wrap
+    denom, r, u = rng.uniform(0.5, 1.5, n), rng.uniform(0.0, 2.0, n), rng.uniform(0.5, 2.0, n)
+    urr = float(np.sum(u * r * r))
+    errors = np.empty(2 * window + 1)
+    _turn_errors(t, p, denom, r, u, table, 0, n, window, urr, grid.n_theta, grid.n_phi, errors)
+    alone = [_turn_error(t, p, denom, r, u, table, 0, n, k, urr, grid.n_theta, grid.n_phi)
+             for k in range(-window, window + 1)]
+    np.testing.assert_allclose(errors, alone, rtol=1e-12)
+    assert np.ptp(alone) > 0.03 * urr                      # the turns differ: the test can fail
 
 
 def test_a_table_fitted_to_samples_of_turned_points_recovers_the_lobe_between_one_points_samples():

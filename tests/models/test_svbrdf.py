@@ -1,5 +1,7 @@
 """The fitted SVBRDF folder and its loader: eq. 6 with tabulated NDFs (DESIGN.md sec. 4)."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
@@ -8,7 +10,7 @@ import facetsynth
 from facetsynth.models import microfacet
 from facetsynth.fit import params
 from facetsynth.io.errors import InputError
-from facetsynth.geometry.grid import DirectionGrid
+from facetsynth.geometry.grid import DirectionGrid, turn
 from facetsynth.geometry.plane import PlaneGrid
 from facetsynth.truth.scene import MaterialMaps
 from facetsynth.models.svbrdf import SVBRDF, mixture_at, tabulate_truth
@@ -386,3 +388,30 @@ def test_the_compiled_mixture_is_bitwise_the_numpy_bilinear_mixture(shape):
     t, p = grid.coordinates(d)
     got = mixture_at(tables, neighbours, weights, index, t, p, grid.n_theta, grid.n_phi)
     assert np.array_equal(got, expected)
+
+
+@pytest.mark.parametrize("turned", [False, True])
+def test_the_compiled_sample_terms_are_the_numpy_model(truth_model, turned):
+    """SVBRDF.sample_terms (refine's samples in one compiled pass) against the model's numpy methods it
+    replaced there: h's cell coordinates in the point's turned frame, ndf_at, fresnel of c (the mean of |i.h|
+    and |o.h|) and area_at, to rounding, with and without a turn field, at grazing lights and the pole."""
+    _, model = truth_model
+    rng = np.random.default_rng(3)
+    if turned:
+        model = replace(model, rotation=rng.uniform(-np.pi, np.pi, P))
+    at = rng.integers(0, P, 3000)
+    wi, wo = upper(rng, 3000), upper(rng, 3000)
+    wi[:20, 2] = 1e-9                                    # grazing lights
+    wi[:20] /= np.linalg.norm(wi[:20], axis=1, keepdims=True)
+    wi[20:30], wo[20:30] = [0.0, 0.0, 1.0], [0.0, 0.0, 1.0]   # h at the pole
+    t, p, d, f, area_i = model.sample_terms(at, wi, wo)
+    h = microfacet.half_vector(wi, wo)
+    c = 0.5 * (np.abs(np.sum(wi * h, -1)) + np.abs(np.sum(wo * h, -1)))
+    t0, p0 = model.grid.coordinates(h if model.rotation is None else turn(h, model.rotation[at]))
+    np.testing.assert_allclose(t, t0, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(np.exp(2j * np.pi * p / model.grid.n_phi), np.exp(2j * np.pi * p0 / model.grid.n_phi),
+                               atol=1e-12)                  # phi's wrap at 2 pi: either side
+    np.testing.assert_allclose(d, model.ndf_at(at, h), rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(f, microfacet.fresnel(c, model.eta[at]), rtol=1e-13, atol=0)
+    np.testing.assert_allclose(area_i, model.area_at(at, wi), rtol=1e-10)
+    assert np.isfinite(np.stack([t, p, d, f, area_i])).all() and (d >= 0).all() and (area_i >= 1e-6).all()

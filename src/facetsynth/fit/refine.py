@@ -36,7 +36,7 @@ import numpy as np
 from scipy import sparse
 from scipy.sparse.linalg import spsolve
 
-from ..geometry.grid import bilinear_at
+from ..geometry.grid import bilinear_at, bilinear_stencil
 
 
 @dataclass(frozen=True)
@@ -153,6 +153,32 @@ def _turn_error(t, p, denom, r, u, table, s0, s1, k, urr, n_theta, n_phi):
     return urr - ugr * ugr / ugg if (ugg > 0.0 and ugr > 0.0) else urr
 
 
+@numba.njit(cache=True, nogil=True)
+def _turn_errors(t, p, denom, r, u, table, s0, s1, window, urr, n_theta, n_phi, errors):
+    """:func:`_turn_error` of every whole turn k = -window .. window into ``errors`` (2 window + 1,), in one
+    pass over the samples: a whole turn moves a sample's bilinear stencil by k sectors and keeps its weights,
+    so each sample reads the 2 window + 2 sectors of its two rings once."""
+    n = 2 * window + 1
+    ugr = np.zeros(n)
+    ugg = np.zeros(n)
+    for s in range(s0, s1):
+        t0, t1, p0, _, ft, fp = bilinear_stencil(t[s], p[s] - window, n_theta, n_phi)
+        a, b = t0 * n_phi, t1 * n_phi
+        w00, w01, w10, w11 = (1 - ft) * (1 - fp), (1 - ft) * fp, ft * (1 - fp), ft * fp
+        us, rs, ds = u[s], r[s], denom[s]
+        lo0, lo1 = table[a + p0], table[b + p0]
+        q = p0
+        for k in range(n):
+            q = q + 1 if q + 1 < n_phi else 0
+            hi0, hi1 = table[a + q], table[b + q]
+            g = (w00 * lo0 + w01 * hi0 + w10 * lo1 + w11 * hi1) * ds
+            ugr[k] += us * g * rs
+            ugg[k] += us * g * g
+            lo0, lo1 = hi0, hi1
+    for k in range(n):
+        errors[k] = urr - ugr[k] * ugr[k] / ugg[k] if (ugg[k] > 0.0 and ugr[k] > 0.0) else urr
+
+
 @numba.njit(cache=True, nogil=True, parallel=True)
 def best_turns(offsets, t, p, denom, r, u, candidates, tables, n_theta, n_phi, window):
     """For each point the representative and turn whose NDF best explains its specular samples.
@@ -186,8 +212,8 @@ def best_turns(offsets, t, p, denom, r, u, candidates, tables, n_theta, n_phi, w
             rep = candidates[x, j]
             if rep < 0:
                 continue
+            _turn_errors(t, p, denom, r, u, tables[rep], s0, s1, window, urr, n_theta, n_phi, errors)
             for k in range(-window, window + 1):
-                errors[k + window] = _turn_error(t, p, denom, r, u, tables[rep], s0, s1, k, urr, n_theta, n_phi)
                 if errors[k + window] < best[x]:
                     best[x], rep_out[x], k_out[x] = errors[k + window], rep, k
             if rep_out[x] == rep:

@@ -89,7 +89,10 @@ class DirectionGrid:
 
     def bilinear(self, d: np.ndarray) -> "Bilinear":
         """:meth:`lookup` at directions d (..., N, 3) for any number of tables: the cells and weights once."""
-        t, p = self.coordinates(d)
+        return self.stencil(*self.coordinates(d))
+
+    def stencil(self, t: np.ndarray, p: np.ndarray) -> "Bilinear":
+        """:meth:`bilinear` at continuous cell coordinates (t, p) (:meth:`coordinates`)."""
         t = np.clip(t, 0.0, self.n_theta - 1.0)
         t0 = np.minimum(np.floor(t).astype(np.intp), self.n_theta - 2) if self.n_theta > 1 else np.zeros(t.shape, np.intp)
         ft = t - t0 if self.n_theta > 1 else np.zeros(t.shape)

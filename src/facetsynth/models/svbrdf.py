@@ -59,6 +59,7 @@ from __future__ import annotations
 
 import weakref
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -67,7 +68,7 @@ import numpy as np
 
 from ..io.errors import InputError
 from ..io.fileio import read_exr, read_json, read_npy, write_exr, write_json, write_npy
-from ..geometry.grid import DirectionGrid, bilinear_stencil, turn
+from ..geometry.grid import DirectionGrid, bilinear_stencil, polar_coordinates, turn
 from .microfacet import fresnel, half_vector
 from ..fit.normals import shading_frames, to_local
 from ..fit.partial_ndf import SHADOWING_GRID
@@ -80,6 +81,25 @@ NORMAL_UNIT_TOL = 1e-3   # |n| - 1 accepted on load (then renormalised)
 MAX_GRID_CELLS = 1 << 20   # a plane or direction grid's side on load: far beyond any fit (paper scale: 4096)
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _mixture_one(table, neighbours, weights, x, t, p, n_theta, n_phi):
+    """:func:`mixture_at` of one point ``x`` at one direction's cell coordinates (t, p)."""
+    t0, t1, p0, p1, ft, fp = bilinear_stencil(t, p, n_theta, n_phi)
+    cells = (t0 * n_phi + p0, t0 * n_phi + p1, t1 * n_phi + p0, t1 * n_phi + p1)
+    bw = ((1 - ft) * (1 - fp), (1 - ft) * fp, ft * (1 - fp), ft * fp)
+    acc = 0.0
+    for k in range(neighbours.shape[1]):
+        w = weights[x, k]
+        if w != 0:
+            row = table[neighbours[x, k]]
+            value = row[cells[0]] * bw[0]
+            value += row[cells[1]] * bw[1]
+            value += row[cells[2]] * bw[2]
+            value += row[cells[3]] * bw[3]
+            acc += w * value
+    return acc
+
+
 @numba.njit(cache=True, nogil=True)
 def mixture_at(table, neighbours, weights, index, t, p, n_theta, n_phi):
     """Eq. 18's mixture sum_k w(x, k) table[j(x, k)] at continuous cell coordinates (t, p) (N,)
@@ -89,22 +109,60 @@ def mixture_at(table, neighbours, weights, index, t, p, n_theta, n_phi):
     and ``weights`` (P, K); a zero weight reads nothing."""
     out = np.zeros(index.size)
     for s in range(index.size):
-        x = index[s]
-        t0, t1, p0, p1, ft, fp = bilinear_stencil(t[s], p[s], n_theta, n_phi)
-        cells = (t0 * n_phi + p0, t0 * n_phi + p1, t1 * n_phi + p0, t1 * n_phi + p1)
-        bw = ((1 - ft) * (1 - fp), (1 - ft) * fp, ft * (1 - fp), ft * fp)
-        acc = 0.0
-        for k in range(neighbours.shape[1]):
-            w = weights[x, k]
-            if w != 0:
-                row = table[neighbours[x, k]]
-                value = row[cells[0]] * bw[0]
-                value += row[cells[1]] * bw[1]
-                value += row[cells[2]] * bw[2]
-                value += row[cells[3]] * bw[3]
-                acc += w * value
-        out[s] = acc
+        out[s] = _mixture_one(table, neighbours, weights, index[s], t[s], p[s], n_theta, n_phi)
     return out
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _fresnel_one(c, eta):
+    """:func:`facetsynth.models.microfacet.fresnel` (eq. 3) of one cosine, in compiled kernels, with its
+    arithmetic in its order."""
+    c = min(max(abs(c), 0.0), 1.0)
+    d = (eta - 1.0) * (eta + 1.0)
+    g2 = d + c * c
+    if g2 < 0.0:
+        return 1.0
+    s = np.sqrt(g2) + c
+    if not s > 0.0:
+        return 0.0
+    gm = d / s
+    r = gm / s
+    t = (c * s - 1.0) / (c * gm + 1.0)
+    return min(0.5 * r * r * (1.0 + t * t), 1.0)
+
+
+@numba.njit(cache=True, nogil=True)
+def sample_terms(at, wi, wo, cos_turn, sin_turn, eta, neighbours, weights, ndf, n_theta, n_phi, area, a_theta,
+                 a_phi):
+    """Eq. 6's factors of S samples in one compiled pass (:meth:`SVBRDF.sample_terms`): sample s of point
+    ``at[s]`` lit from ``wi[s]``, seen from ``wo[s]`` (local directions), the point's turn (eq. 13) given
+    by its ``cos_turn``, ``sin_turn`` (P,; empty: no turn). Returns the half vector's continuous cell coordinates (t, p) in
+    the point's turned frame, D(h) (the eq. 18 mixture, clipped at 0), F(c) (c the mean of |i.h| and
+    |o.h|, eq. 3) and A(i) (eq. 5, floored at 1e-6), each (S,), with numpy's arithmetic in its order."""
+    n = at.size
+    t_out, p_out, d_out, f_out, a_out = np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty(n)
+    tiny = np.finfo(np.float64).tiny
+    for s in range(n):
+        x = at[s]
+        ix, iy, iz = wi[s, 0], wi[s, 1], wi[s, 2]
+        sx, sy, sz = ix + wo[s, 0], iy + wo[s, 1], iz + wo[s, 2]
+        ss = sx * sx + sy * sy + sz * sz
+        if ss > tiny:
+            inv = 1.0 / np.sqrt(ss)
+            hx, hy, hz = sx * inv, sy * inv, sz * inv
+        else:
+            hx, hy, hz = 0.0, 0.0, 1.0
+        c = 0.5 * (abs(ix * hx + iy * hy + iz * hz) + abs(wo[s, 0] * hx + wo[s, 1] * hy + wo[s, 2] * hz))
+        f_out[s] = _fresnel_one(c, eta[x])
+        if cos_turn.size:
+            ct, st = cos_turn[x], sin_turn[x]
+            hx, hy, ix, iy = ct * hx - st * hy, st * hx + ct * hy, ct * ix - st * iy, st * ix + ct * iy
+        t, p = polar_coordinates(hx, hy, hz, n_theta, n_phi)
+        t_out[s], p_out[s] = t, p
+        d_out[s] = max(_mixture_one(ndf, neighbours, weights, x, t, p, n_theta, n_phi), 0.0)
+        t, p = polar_coordinates(ix, iy, iz, a_theta, a_phi)
+        a_out[s] = max(_mixture_one(area, neighbours, weights, x, t, p, a_theta, a_phi), 1e-6)
+    return t_out, p_out, d_out, f_out, a_out
 
 
 _CHECKED_NORMALS: weakref.WeakValueDictionary = weakref.WeakValueDictionary()   # id -> a unit, read-only field
@@ -405,6 +463,24 @@ class SVBRDF:
     def area_at(self, index: np.ndarray, k: np.ndarray) -> np.ndarray:
         """A(x, k) of eq. 5 (the mixture's projected area, floored at 1e-6) at points (N,), directions (N, 3)."""
         return np.maximum(self.mixture(self._area_flat, self.shadowing_grid, index, k), 1e-6)
+
+    def sample_terms(self, at: np.ndarray, wi: np.ndarray, wo: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Eq. 6's factors of samples in one compiled pass (:func:`sample_terms`): at points ``at`` (S,), for
+        directions ``wi``, ``wo`` (S, 3) in each point's shading frame, the continuous cell coordinates (t, p)
+        of h in the point's turned frame (:meth:`DirectionGrid.coordinates`), D(x, h) (:meth:`ndf_at`), F(c)
+        (c the mean of |i.h| and |o.h|) and A(x, i) (:meth:`area_at`), each (S,)."""
+        cos, sin = self._turn
+        return sample_terms(np.asarray(at, np.intp), np.ascontiguousarray(wi, float), np.ascontiguousarray(wo, float),
+                            cos, sin, self.eta, self.neighbours, self.weights, self._ndf_flat, *self.grid.shape,
+                            self._area_flat, *self.shadowing_grid.shape)
+
+    @cached_property
+    def _turn(self) -> tuple[np.ndarray, np.ndarray]:
+        """cos and sin of each point's eq. 13 turn (P,), float64; empty without a turn field."""
+        if self.rotation is None:
+            return np.empty(0), np.empty(0)
+        phi = np.asarray(self.rotation, float)
+        return np.cos(phi), np.sin(phi)
 
     def specular_terms(self, index: np.ndarray, wi: np.ndarray, wo: np.ndarray,
                        area_o: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:

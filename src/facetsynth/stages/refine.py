@@ -26,8 +26,6 @@ from ..io.errors import InputError
 from ..io.fileio import atomic_dir, read_npy, write_json
 from ..io.frames import imap, map_frames
 from ..evaluation.metrics import finite_or_none
-from ..geometry.grid import turn
-from ..models.microfacet import fresnel, half_vector
 from ..fit import cluster
 from ..fit.cluster import relative_rotation, self_distances
 from ..fit.synthesis import pairwise_distance, rotate_tuple
@@ -93,9 +91,8 @@ def sums_of(model: SVBRDF, index: np.ndarray, pp, wi, u, rho_s, views,
             separated_kd: np.ndarray | None = None) -> NormalSums:
     """:func:`point_sums` of samples already gathered (:func:`samples`' rows ``pp`` of ``index``, ...)."""
     at = index[pp]
-    area_o = model.area_at(index, views)
-    spec, c = model.specular_terms(at, wi, views[pp], area_o[pp])
-    g = spec * fresnel(c, model.eta[at])
+    _, _, d, denom = specular_factors(model, index, pp, wi, views)
+    g = np.where(views[pp, 2] > 0.0, d * denom, 0.0)       # i.z > 0 already (samples)
     kd = model.kd if separated_kd is None else separated_kd
     return NormalSums.of(pp, len(index), rho_s + kd[at] / np.pi, g, u)
 
@@ -337,15 +334,13 @@ def with_stretch(model: SVBRDF, representatives: np.ndarray, points: np.ndarray,
     return stretched(model, factors)
 
 
-def half_and_denominator(model: SVBRDF, index: np.ndarray, pp: np.ndarray, i: np.ndarray,
-                         views: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The half vectors h (S, 3) of samples (:func:`samples`: rows ``pp`` of ``index``, lights ``i``, the
-    points' ``views``) and eq. 6's F(c) / (4 A(i) A(o)) (S,): the specular factor without ks and D, as
-    SVBRDF.specular_terms forms it (c = the mean of |i.h| and |o.h|)."""
-    at, o = index[pp], views[pp]
-    h = half_vector(i, o)
-    c = 0.5 * (np.abs(np.sum(i * h, -1)) + np.abs(np.sum(o * h, -1)))
-    return h, fresnel(c, model.eta[at]) / (4.0 * model.area_at(at, i) * model.area_at(index, views)[pp])
+def specular_factors(model: SVBRDF, index: np.ndarray, pp: np.ndarray, i: np.ndarray,
+                     views: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Per sample (:func:`samples`: rows ``pp`` of ``index``, lights ``i``, the points' ``views``): the continuous
+    cell coordinates (t, p) of its half vector in its point's turned frame, D(h), and eq. 6's
+    F(c) / (4 A(i) A(o)): the specular factor without ks and D (:meth:`SVBRDF.sample_terms`), each (S,)."""
+    t, p, d, f, area_i = model.sample_terms(index[pp], i, views[pp])
+    return t, p, d, f / (4.0 * area_i * model.area_at(index, views)[pp])
 
 
 def choose_turns(model: SVBRDF, capture: RectifiedCapture, specular, valid, settings: Settings,
@@ -381,14 +376,12 @@ def choose_turns(model: SVBRDF, capture: RectifiedCapture, specular, valid, sett
         pp, _, i, u, rho_s, views = samples(capture, specular, valid, index)
         if pp.size == 0:
             return
-        at = index[pp]
-        h, denom = half_and_denominator(model, index, pp, i, views)
+        t, p, d, denom = specular_factors(model, index, pp, i, views)
         r, u = rho_s.mean(axis=-1), u.mean(axis=-1)
-        g0 = model.ndf_at(at, h) * denom
+        g0 = d * denom
         ugr, ugg = (np.bincount(pp, v, minlength=index.size) for v in (u * g0 * r, u * g0 * g0))
         urr = np.bincount(pp, u * r * r, minlength=index.size)
         current = urr - np.divide(np.clip(ugr, 0, None) ** 2, ugg, out=np.zeros_like(ugg), where=ugg > 0)
-        t, p = model.grid.coordinates(turn(h, rotation[at]))
         offsets = np.searchsorted(pp, np.arange(index.size + 1))
         err, rep, k = best_turns(offsets, t, p, denom, r, u, candidates, tables, model.grid.n_theta,
                                  model.grid.n_phi, window)
@@ -511,8 +504,8 @@ def refit_tables(model: SVBRDF, capture: RectifiedCapture, specular, valid, sett
             a, b = solve(sums_of(model, idx, pp, i, u, rho_s, views), model.kd[idx] / np.pi, model.ks[idx],
                          settings.ridge)
             at = idx[pp]
-            h, denom = half_and_denominator(model, idx, pp, i, views)
-            look = grid.bilinear(turn(h, rotation[at]))
+            t, p, _, denom = specular_factors(model, idx, pp, i, views)
+            look = grid.stencil(t, p)
             r = rho_s + model.kd[at] / np.pi - a[pp]      # the samples' rho (point_sums' y) less kd/pi
             return table_normal_equations(look.cells.T, look.weights.T, b[pp] * denom[:, None], r, u, n_cells)
 
