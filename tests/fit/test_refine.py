@@ -233,6 +233,37 @@ def test_best_turns_finds_a_turn_between_whole_sectors():
     assert k_whole[0] == 2 and err[0] < 0.5 * whole[0]
 
 
+@pytest.mark.parametrize("tilted", [False, True])
+def test_the_compiled_gather_is_the_samples_written_in_numpy(tilted):
+    """refine's samples of a tile in one compiled pass (fit.refine.gather_samples) against the numpy it replaced
+    (light_geometry, the shading frames, the masks): the same samples in the same order, i and |P - x|^2 equal
+    (to rounding under tilted frames, whose matrix product numpy orders its own way), rho to the bit; point and
+    directional lights, lights at and below a point's horizon, non-finite residuals dropped."""
+    from facetsynth.fit.normals import shading_frames, to_local
+    from facetsynth.fit.refine import gather_samples
+    from facetsynth.models.render import light_geometry
+    rng = np.random.default_rng(8)
+    n, f = 40, 30
+    points = np.c_[rng.uniform(-0.05, 0.05, (n, 2)), np.zeros(n)]
+    lights = np.c_[rng.uniform(-0.3, 0.3, (f, 2)), rng.uniform(-0.02, 0.3, f), np.ones(f)]
+    lights[:5] = np.c_[rng.normal(size=(5, 3)), np.zeros(5)]             # directional
+    lights[:5, :3] /= np.linalg.norm(lights[:5, :3], axis=1, keepdims=True)
+    normal = np.c_[rng.normal(0, 0.3, (n, 2)), np.ones(n)] if tilted else np.tile([0.0, 0.0, 1.0], (n, 1))
+    frames = shading_frames(normal / np.linalg.norm(normal, axis=1, keepdims=True))
+    ok = rng.uniform(size=(n, f)) < 0.7
+    rho = rng.uniform(0, 1, (n, f, 3)).astype(np.float32)
+    rho[0, 3, 1], rho[2, 4, 0] = np.inf, np.nan
+    pp, ff, wi, r2, got = gather_samples(points, lights, frames if tilted else np.empty((0, 3, 3)), ok, rho)
+    i, d2 = light_geometry(points[:, None, :], lights[None])
+    i = to_local(frames[:, None], i) if tilted else i
+    keep = ok & (i[..., 2] > 0) & np.isfinite(rho.sum(axis=-1))
+    assert 0 < keep.sum() < ok.sum()                                     # some lights below the horizon
+    np.testing.assert_array_equal(np.c_[pp, ff], np.argwhere(keep))
+    np.testing.assert_allclose(wi, i[keep], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(r2, np.where(lights[ff, 3] > 0, d2[keep], 1.0), rtol=1e-15)
+    np.testing.assert_array_equal(got, rho[keep])
+
+
 def test_every_whole_turn_in_one_pass_equals_each_turn_alone():
     """best_turns reads each sample's two rings once for all 2 window + 1 whole turns (fit.refine._turn_errors,
     4.7 x faster on refine's tiles); each turn's error equals the one pass per turn it replaced

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
+import scipy.fft
 
 from ..geometry.grid import DirectionGrid, bilinear_at, polar_coordinates, turn
 from ..models.microfacet import fresnel
@@ -81,10 +82,19 @@ def _shadowing_area(ndf: np.ndarray, grid: DirectionGrid) -> np.ndarray:
     method, kernel = _shadowing_kernel(grid)
     if method == "dense":
         return _projected_area(ndf.reshape(len(ndf), -1), kernel)
-    spectrum = np.fft.rfft(ndf, axis=-1).transpose(2, 0, 1)                          # (f, P, T)
+    spectrum = scipy.fft.rfft(ndf, axis=-1).transpose(2, 0, 1)                       # (f, P, T)
     summed = np.matmul(spectrum, kernel.transpose(2, 0, 1))                          # (f, P, Ts): sum over rings
-    corr = np.fft.irfft(summed.transpose(1, 2, 0), n=grid.n_phi, axis=-1)           # (P, Ts, F): every lag
-    return corr[..., :: grid.n_phi // SHADOWING_GRID.n_phi].reshape(len(ndf), -1)
+    return _every_mth_lag(summed, grid.n_phi, grid.n_phi // SHADOWING_GRID.n_phi).transpose(1, 2, 0).reshape(
+        len(ndf), -1)
+
+
+def _every_mth_lag(spectrum: np.ndarray, n: int, m: int) -> np.ndarray:
+    """irfft(spectrum, n, axis=0)[::m]: the inverse transform at every m-th lag alone, as the n/m-point transform
+    of the spectrum folded onto n/m bins (sampling every m-th lag aliases the bins k, k + n/m, ...); ``spectrum``
+    (n/2 + 1, ...) of a real signal of even length n, m dividing n/2."""
+    full = np.concatenate([spectrum, np.conj(spectrum[-2:0:-1])])                  # all n bins
+    folded = full.reshape((m, n // m) + full.shape[1:]).sum(axis=0)
+    return scipy.fft.irfft(folded[: n // m // 2 + 1], n=n // m, axis=0) / m
 
 
 SHADOWING_METHODS = ("constrained", "unconstrained", "clipped")

@@ -122,6 +122,52 @@ def radiance_weights(wi: np.ndarray, r2: np.ndarray, intensity: np.ndarray) -> n
     return (e[..., None] * intensity) ** 2
 
 
+@numba.njit(cache=True, nogil=True)
+def gather_samples(points, lights, frames, ok, rho):
+    """A tile's samples in one compiled pass: of points (N, 3) under homogeneous lights (F, 4) (eq. 8's
+    geometry, as :func:`facetsynth.models.render.light_geometry` makes it), the samples ``ok`` (N, F) lit
+    from above in the point's shading frame (``frames`` (N, 3, 3), :func:`facetsynth.fit.normals.shading_frames`;
+    empty: the plane's) whose residual ``rho`` (N, F, 3) float32 is finite (its three channels' float32 sum).
+    Returns (point (S,), light (S,), i (S, 3) local, |P - x|^2 (S,) (1 for a light at infinity), rho (S, 3)
+    float64), in (point, light) order."""
+    n, f = ok.shape
+    keep = np.zeros((n, f), np.bool_)
+    wi = np.empty((n, f, 3))
+    r2 = np.empty((n, f))
+    count = 0
+    for a in range(n):
+        for b in range(f):
+            if not ok[a, b]:
+                continue
+            w = lights[b, 3]
+            dx, dy, dz = (lights[b, 0] - w * points[a, 0], lights[b, 1] - w * points[a, 1],
+                          lights[b, 2] - w * points[a, 2])
+            d2 = dx * dx + dy * dy + dz * dz
+            norm = np.sqrt(d2)
+            ix, iy, iz = dx / norm, dy / norm, dz / norm
+            if frames.shape[0]:
+                m = frames[a]
+                ix, iy, iz = (m[0, 0] * ix + m[0, 1] * iy + m[0, 2] * iz, m[1, 0] * ix + m[1, 1] * iy + m[1, 2] * iz,
+                              m[2, 0] * ix + m[2, 1] * iy + m[2, 2] * iz)
+            if iz > 0 and np.isfinite(rho[a, b, 0] + rho[a, b, 1] + rho[a, b, 2]):
+                keep[a, b] = True
+                wi[a, b, 0], wi[a, b, 1], wi[a, b, 2] = ix, iy, iz
+                r2[a, b] = d2 if w > 0 else 1.0
+                count += 1
+    point, light = np.empty(count, np.intp), np.empty(count, np.intp)
+    i_out, r2_out, rho_out = np.empty((count, 3)), np.empty(count), np.empty((count, 3))
+    s = 0
+    for a in range(n):
+        for b in range(f):
+            if keep[a, b]:
+                point[s], light[s], r2_out[s] = a, b, r2[a, b]
+                for c in range(3):
+                    i_out[s, c] = wi[a, b, c]
+                    rho_out[s, c] = rho[a, b, c]
+                s += 1
+    return point, light, i_out, r2_out, rho_out
+
+
 def stretch(table: np.ndarray, grid, s: float) -> np.ndarray:
     """The NDF tables (..., T, F) on ``grid`` stretched in slope space by ``s`` (Heitz 2014, sec. 5: the
     slope distribution P(m) = D(h) cos^4(theta_h), m = tan(theta_h) (cos phi, sin phi), scaled to

@@ -30,8 +30,8 @@ from ..fit import cluster
 from ..fit.cluster import relative_rotation, self_distances
 from ..fit.synthesis import pairwise_distance, rotate_tuple
 from ..fit.params import normalise, projected_area
-from ..fit.refine import (NormalSums, best_turns, owned_kd, radiance_weights, solve, solve_table, stretch,
-                          table_normal_equations)
+from ..fit.refine import (NormalSums, best_turns, gather_samples, owned_kd, radiance_weights, solve, solve_table,
+                          stretch, table_normal_equations)
 
 from ..models.svbrdf import SVBRDF
 from ..evaluation.refine import truth_scores
@@ -101,16 +101,13 @@ def samples(capture: RectifiedCapture, specular, valid, index: np.ndarray) -> tu
     """The valid samples of points ``index`` lit from above (i.z > 0), finite: (row in ``index`` (S,), frame
     (S,), i (S, 3), radiance weights u (S, 3), the specular residual rho - kd/pi (S, 3), and the view o of
     every point of ``index`` (N, 3))."""
-    wi, r2 = capture.light_directions(index)
-    rho_s = np.asarray(specular[index], np.float32)
-    ok = np.asarray(valid[index], bool) & (wi[..., 2] > 0) & capture.visible[index][:, None]
-    ok &= np.isfinite(rho_s.sum(axis=-1))         # three half floats' sum: infinite or NaN only with one of them
-    at = np.flatnonzero(ok)                          # the samples as flat (point, light) rows: one gather each
-    pp, ff = np.divmod(at, ok.shape[1])
-    wi = wi.reshape(-1, 3)[at]
-    u = radiance_weights(wi, r2.ravel()[at], capture.light_intensities[ff])
-    views = capture.view_directions(True, index)
-    return pp, ff, wi, u, rho_s.reshape(-1, 3)[at].astype(float), views
+    frames = capture.frames(index)
+    ok = np.asarray(valid[index], bool) & capture.visible[index][:, None]
+    pp, ff, wi, r2, rho_s = gather_samples(capture.points[index], capture.lights,
+                                           np.empty((0, 3, 3)) if frames is None else frames, ok,
+                                           np.asarray(specular[index], np.float32))
+    u = radiance_weights(wi, r2, capture.light_intensities[ff])
+    return pp, ff, wi, u, rho_s, capture.view_directions(True, index)
 
 
 def stretched(model: SVBRDF, s: np.ndarray) -> SVBRDF:
@@ -334,6 +331,11 @@ def with_stretch(model: SVBRDF, representatives: np.ndarray, points: np.ndarray,
     return stretched(model, factors)
 
 
+def luminance(v: np.ndarray) -> np.ndarray:
+    """The mean of the channels of v (S, 3): numpy's mean over the last axis to the bit, 4 x faster."""
+    return (v[:, 0] + v[:, 1] + v[:, 2]) / 3
+
+
 def specular_factors(model: SVBRDF, index: np.ndarray, pp: np.ndarray, i: np.ndarray,
                      views: np.ndarray) -> tuple[np.ndarray, ...]:
     """Per sample (:func:`samples`: rows ``pp`` of ``index``, lights ``i``, the points' ``views``): the continuous
@@ -377,7 +379,7 @@ def choose_turns(model: SVBRDF, capture: RectifiedCapture, specular, valid, sett
         if pp.size == 0:
             return
         t, p, d, denom = specular_factors(model, index, pp, i, views)
-        r, u = rho_s.mean(axis=-1), u.mean(axis=-1)
+        r, u = luminance(rho_s), luminance(u)
         g0 = d * denom
         ugr, ugg = (np.bincount(pp, v, minlength=index.size) for v in (u * g0 * r, u * g0 * g0))
         urr = np.bincount(pp, u * r * r, minlength=index.size)
