@@ -291,7 +291,7 @@ def final_outputs(sample):
     if rendered_truth(sample) is not None:
         outputs.append(f"results/{sample}/validate/metrics.json")
     if SAMPLE_SHEET[sample]["source"] == "virtual":  # its truth: scored beside the fit (issue 31)
-        outputs.append(f"results/{sample}/truth/rectify.json")
+        outputs += [f"results/{sample}/truth/rectify.json", f"results/{sample}/truth/refine.json"]
     outputs.append(f"results/{sample}/export/metrics.json")  # the portable glTF material and its loss
     outputs += report_figures(sample)  # the figures of `snakemake --report` (workflow/rules/report.smk)
     return outputs

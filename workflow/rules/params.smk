@@ -58,3 +58,21 @@ rule refine:
         material_tolerance=config["params"]["material_tolerance"],  # materials as params groups them
     script:
         "../scripts/refine.py"
+
+
+rule score_refine:  # a virtual sample's fitted SVBRDF against its truth, beside the fit
+    input:
+        geometry="results/{sample}/separate/geometry.json",
+        pipeline="results/{sample}/params/svbrdf",
+        svbrdf="results/{sample}/svbrdf",
+    output:
+        scores="results/{sample}/truth/refine.json",
+    log:
+        "results/{sample}/logs/score_refine.log",
+    benchmark:
+        "results/{sample}/benchmarks/score_refine.tsv"
+    threads: 1
+    resources:
+        mem_mb=1000,  # demo, 168^2 points: measured below
+    script:
+        "../scripts/score_refine.py"

@@ -6,8 +6,8 @@
 Prints one markdown row per sample that has results: held-out relative L2 of radiance (all, and the
 specular part where the truth is eq. 6), ours against the per-point Ward baseline on the same views; the
 self-check's (no truth: the fitting view relit, and the held-out lights, selfcheck/metrics.json); the
-representatives, and the largest within-region median NDF spread of the delivered model (refine's), params'
-in brackets.
+representatives, and the largest within-region median NDF spread of the delivered model (refine's, scored by
+rule score_refine), params' in brackets.
 """
 
 import csv
@@ -32,8 +32,8 @@ def main(sheet: str, results: str = "results") -> None:
     print("|---|---|---|---|---|---|---|")
     for row in rows:
         base = Path(results) / row["sample"]
-        v, c, p, sc, r = (read(base / s / "metrics.json")
-                          for s in ("validate", "cluster", "params", "selfcheck", "refine"))
+        v, c, p, sc = (read(base / s / "metrics.json") for s in ("validate", "cluster", "params", "selfcheck"))
+        r = read(base / "truth" / "refine.json")         # rule score_refine's
         h = read(base / "hdr" / "metrics.json")
         if v is None:
             continue

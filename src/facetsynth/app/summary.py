@@ -5,7 +5,7 @@ with its key figures, or not yet. Then the warnings: every stage's
 ``degenerate`` reason and the ``WARNING`` lines of the stage logs
 (``results/SAMPLE/logs/``), each once. Figures against ground truth appear
 only where the stage had the truth (virtual samples): in its metrics, or
-scored beside the fit in ``truth/STAGE.json`` (rectify's registration).
+scored beside the fit in ``truth/STAGE.json`` (rectify's registration, refine's kd and ks).
 """
 
 from __future__ import annotations

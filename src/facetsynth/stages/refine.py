@@ -7,8 +7,8 @@ on the samples it was fitted on (eq. 6 read forwards): one NDF per material,
 eta and the NDF's stretch per material, each point's NDF turn, kd and ks per
 point (:func:`fit`). Output: the fitted SVBRDF folder a user takes away, and
 ``refine/metrics.json``: the model's relative L2 against those samples before
-and after, each choice, and for a virtual capture kd and ks against the truth
-(:func:`facetsynth.evaluation.refine.truth_scores`, apart from the fit, on the written model).
+and after, and each choice. A virtual capture's kd and ks against the truth are
+rule ``score_refine``'s (:mod:`facetsynth.stages.score_refine`), beside the fit.
 """
 
 from __future__ import annotations
@@ -34,7 +34,6 @@ from ..fit.refine import (NormalSums, best_turns, gather_samples, owned_kd, radi
                           stretch, table_normal_equations)
 
 from ..models.svbrdf import SVBRDF
-from ..evaluation.refine import truth_scores
 from .common import TILE_POINTS, ModelOutputs, RectifiedCapture, RuleFiles, StageSettings, strided, tiles
 
 log = logging.getLogger(__name__)
@@ -564,13 +563,4 @@ def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threa
     log.info("relative L2 on the fitting samples (radiance, rectified, %d points): %s -> %s (%d points fitted, "
              "%.1f s)", FIGURE_POINTS, metrics["fitting_samples_rel_l2_before"],
              metrics["fitting_samples_rel_l2_after"], metrics["points_fitted"], metrics["seconds"])
-    truth = truth_scores(refined, capture)
-    if truth:
-        before = truth_scores(pipeline, capture)
-        truth.update({f"{k}_before": before[k] for k in ("kd_median_rel_error", "ks_median_rel_error",
-                                                           "ks_f0_median_rel_error", "ndf_spread_max_median")})
-        log.info("against the truth: kd %s, ks %s, largest NDF spread %s (before: %s, %s, %s)",
-                 *(truth.get(k) for k in ("kd_median_rel_error", "ks_median_rel_error", "ndf_spread_max_median")),
-                 *(truth.get(f"{k}_before") for k in ("kd_median_rel_error", "ks_median_rel_error",
-                                                       "ndf_spread_max_median")))
-    write_json(outputs.metrics, {"ground_truth": capture.truth_scene is not None, **metrics, **truth})
+    write_json(outputs.metrics, {"ground_truth": capture.truth_scene is not None, **metrics})
