@@ -211,3 +211,18 @@ def test_the_slice_kept_on_its_support_gives_the_partial_ndfs_of_the_whole_slice
     assert everything == 1.0 and 0.2 < kept < 0.9 and (w > 0).mean() > 0.1
     np.testing.assert_array_equal(d, d_all)
     np.testing.assert_array_equal(w, w_all)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_channel_mean_is_numpys_mean_over_the_channels_to_the_bit(dtype):
+    """io.colour.channel_mean (the three channels added in order, the per-point tables' luminance in separate,
+    resample, cluster, params and refine) against numpy's mean over the last axis it replaced: equal to the
+    bit, dtype included, with NaN and both infinities among the channels, on (N, 3) and (P, F, 3)."""
+    from facetsynth.io.colour import channel_mean
+    rng = np.random.default_rng(11)
+    for shape in ((5000, 3), (40, 120, 3)):
+        v = (rng.standard_normal(shape) * 10.0 ** rng.integers(-6, 6, shape)).astype(dtype)
+        v.flat[::97], v.flat[::151], v.flat[::203] = np.inf, np.nan, -np.inf
+        got = channel_mean(v)
+        assert got.dtype == v.mean(axis=-1).dtype
+        np.testing.assert_array_equal(got, v.mean(axis=-1))

@@ -68,6 +68,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..models.microfacet import half_vector
+from ..io.colour import channel_mean
 
 FLAT = np.array([0.0, 0.0, 1.0])
 
@@ -313,7 +314,7 @@ def highlight_normals(b: np.ndarray, h: np.ndarray, valid: np.ndarray) -> tuple[
     to tell a normal (a metal), a lobe centred on the normal peaks at h = n, so the normal is the mean half
     vector ``h`` (p, F, 3) of the GLINT_SAMPLES brightest valid samples, weighted by their luminance above the
     point's median. Contrast: the brightest sample's luminance over the median (0 without samples)."""
-    lum = np.where(valid, b.mean(axis=-1), np.nan)
+    lum = np.where(valid, channel_mean(b), np.nan)
     with np.errstate(all="ignore"):
         median = np.nan_to_num(np.nanmedian(lum, axis=1), nan=0.0) if lum.shape[1] else np.zeros(len(lum))
     lum = np.nan_to_num(lum, nan=-np.inf)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..models.render import light_geometry
+from ..io.colour import channel_mean
 
 
 def brdf_samples(radiance: np.ndarray, points: np.ndarray, lights: np.ndarray,
@@ -45,8 +46,8 @@ def diffuse_level(rho: np.ndarray, radiance: np.ndarray, valid: np.ndarray, thre
     """
     if not 0.0 <= lowest <= 1.0:
         raise ValueError(f"lowest must be a fraction in [0, 1], not {lowest}")
-    valid = valid & np.isfinite(rho).all(axis=-1) & np.isfinite(radiance).all(axis=-1)
-    intensity = radiance.mean(axis=-1)
+    intensity, rho_mean = channel_mean(radiance), channel_mean(rho)
+    valid = valid & np.isfinite(rho_mean) & np.isfinite(intensity)     # the mean of a NaN or Inf channel is not finite
     n_valid = valid.sum(axis=1)
     average = np.divide(np.where(valid, intensity, 0.0).sum(axis=1), n_valid,
                         out=np.zeros(n_valid.shape), where=n_valid > 0)
@@ -57,7 +58,7 @@ def diffuse_level(rho: np.ndarray, radiance: np.ndarray, valid: np.ndarray, thre
     n = qualifies.sum(axis=1)
     m = np.clip(np.round(lowest * n), 1, None).astype(np.intp)                    # (P,) <= n where n >= 1
     k = int(m.max())
-    key = np.where(qualifies, rho.mean(axis=-1), np.inf)
+    key = np.where(qualifies, rho_mean, np.inf)
     order = np.argpartition(key, k - 1, axis=1)[:, :k] if k < key.shape[1] else np.arange(key.shape[1])[None]
     order = np.take_along_axis(order, np.argsort(np.take_along_axis(key, order, axis=1), axis=1), axis=1)
     taken = (np.arange(k)[None, :] < m[:, None]) & np.isfinite(np.take_along_axis(key, order, axis=1))

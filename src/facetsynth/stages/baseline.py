@@ -16,6 +16,7 @@ from tqdm import tqdm
 from ..io.fileio import atomic_path, read_exr, write_json
 from ..models.ward import WardSVBRDF, fit_points
 from .common import TILE_POINTS, RectifiedCapture, RuleFiles, StageSettings, part_points, part_records
+from ..io.colour import channel_mean
 
 log = logging.getLogger(__name__)
 
@@ -110,7 +111,7 @@ def _fit_points(capture: RectifiedCapture, specular, valid, points: slice, max_n
             continue
         p = visible + t0
         wi, _ = capture.light_directions(p)                                                  # (T, F, 3)
-        rho_s = np.asarray(spec[tile], float)[visible].mean(axis=-1)                     # (T, F)
+        rho_s = channel_mean(np.asarray(spec[tile], float)[visible])                    # (T, F)
         use = np.asarray(ok[tile], bool)[visible] & (wi[..., 2] > 0) & np.isfinite(rho_s)
         fit = fit_points(rho_s, wi, view[p][:, None], use, max_iterations=max_nfev)
         q = p - points.start

@@ -24,6 +24,7 @@ from ..io.frames import imap, map_frames
 from ..geometry.grid import DirectionGrid
 from ..fit.partial_ndf import relative_l2
 from .common import RectifiedCapture, RuleFiles, StageSettings, tiles
+from ..io.colour import channel_mean
 
 log = logging.getLogger(__name__)
 
@@ -349,7 +350,7 @@ def pooled_representatives(capture: RectifiedCapture, visible: np.ndarray, resul
                                                np.asarray(d_all[own], float), np.asarray(w_all[own], float), grid,
                                                max_shift=grid.n_phi // 4)
         turning = np.median(gain) < TURN_GAIN and np.std(turn) > TURN_SPREAD * grid.d_phi
-        pooled = partial_ndf.pooled_fit(np.asarray(specular[members], float).mean(axis=-1),
+        pooled = partial_ndf.pooled_fit(channel_mean(np.asarray(specular[members], float)),
                                         np.asarray(valid[members]), capture.light_directions(members)[0],
                                         views[members], w_members, views[own], grid, settings.shadowing,
                                         settings.grazing_deg, settings.tolerance, settings.max_iterations,

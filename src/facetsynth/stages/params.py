@@ -31,6 +31,7 @@ from ..models.svbrdf import SVBRDF
 from ..fit.synthesis import SUPPORT
 from ..evaluation.params import truth_scores
 from .common import ModelOutputs, RectifiedCapture, RuleFiles, StageSettings, tiles
+from ..io.colour import channel_mean
 
 log = logging.getLogger(__name__)
 
@@ -127,7 +128,7 @@ def grazing_fresnel(model: SVBRDF, ks_pt: np.ndarray, capture: RectifiedCapture,
         d_here = model.ndf_at(index, h)
         c_ref = np.clip(model.mixture(carried, model.grid, index, h) / np.maximum(d_here, 1e-300), 0.0, 1.0)
         lobe = (d_here >= min_ndf_fraction * d_peak) & (model.mixture(covered, model.grid, index, h) >= 0.5)
-        rho_s = np.asarray(specular[tile], float)[pp, ff].mean(axis=-1)
+        rho_s = channel_mean(np.asarray(specular[tile], float)[pp, ff])
         f_m = params.measured_fresnel(rho_s, ks_pt[index] * spec)
         keep = lobe & (spec > 0)
         return {k: v[keep] for k, v in zip(keys, (index, f_m, c, c_ref, rho_s))}

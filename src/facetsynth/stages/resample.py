@@ -27,6 +27,7 @@ from ..fit.pushpull import push_pull
 from ..fit.sharpness import grid_resolution, lobe_widths
 from ..io.tables import join_tables, support_writer
 from .common import TILE_POINTS, RectifiedCapture, RuleFiles, StageSettings, part_points, part_records, tiles
+from ..io.colour import channel_mean
 
 log = logging.getLogger(__name__)
 
@@ -43,7 +44,7 @@ def measured_sharpness(capture: RectifiedCapture, spec, ok, grazing_deg: float) 
     wi, _ = capture.light_directions(idx)
     o = np.broadcast_to(capture.view_directions(True, idx)[:, None, :], wi.shape)
     use = np.asarray(ok[idx], bool) & (wi[..., 2] > np.cos(np.radians(grazing_deg)))
-    value = np.where(use, np.asarray(spec[idx], float).mean(axis=-1) * 4.0 * wi[..., 2] * o[..., 2], 0.0)
+    value = np.where(use, channel_mean(np.asarray(spec[idx], float)) * 4.0 * wi[..., 2] * o[..., 2], 0.0)
     narrow, broad, _ = lobe_widths(half_vector(wi, o), value)
     peak = value.max(axis=1)
     lobed = np.isfinite(narrow) & (peak > 0.1 * np.quantile(peak, 0.9))     # drops markers and diffuse points
@@ -170,7 +171,7 @@ def _resample_points(capture: RectifiedCapture, grid: DirectionGrid, spec, ok, p
         tile = slice(points.start + local.start, points.start + local.stop)
         s, valid = np.asarray(spec[tile], float), ok[tile]
         xyz, directions = capture.points[tile], world_grid(grid, capture.frames(tile))
-        value, defined = lights.interpolate(s.mean(axis=-1), valid, xyz, directions)
+        value, defined = lights.interpolate(channel_mean(s), valid, xyz, directions)
         table = push_pull((value * defined).reshape((-1,) + grid.shape), defined.reshape((-1,) + grid.shape).astype(float))
         total = np.where(valid[..., None], s, 0.0).sum(axis=1)
         mean = total.mean(axis=1, keepdims=True)

@@ -39,6 +39,7 @@ from ..models.render import light_geometry, towards
 from ..evaluation.selfcheck import heldout_lights
 from ..fit.separation import brdf_samples, diffuse_level, specular_residual
 from .common import RectifiedCapture, RuleFiles, StageSettings, flag_degenerate, strided, tiles
+from ..io.colour import channel_mean
 
 log = logging.getLogger(__name__)
 
@@ -269,8 +270,8 @@ def eq9_residuals(capture: RectifiedCapture, settings: Settings, rho, valid, nor
         kd[tile] = np.pi * rho_d
         residual = specular_residual(rho_tile, rho_d)
         residuals[tile] = as_half(residual)
-        peak = np.where(ok, residual.mean(axis=-1), 0.0).max(axis=1, initial=0.0)
-        diffuse = rho_d.mean(axis=-1)
+        peak = np.where(ok, channel_mean(residual), 0.0).max(axis=1, initial=0.0)
+        diffuse = channel_mean(rho_d)
         signal[tile] = (diffuse > 0) & (peak >= SIGNAL_RATIO * diffuse)
 
     map_frames(separate_tile, list(tiles(n_points)), threads, "separate: eq. 9", unit="tile")
@@ -369,7 +370,7 @@ def _in_shading_frame(rho: np.ndarray, wi: np.ndarray, cos: np.ndarray, albedo: 
     point's facet (n . i < MIN_COS) and in cast shadows (luminance below CAST_SHADOW x the diffuse part's
     albedo n . i) are invalid."""
     b = rho * np.clip(wi[..., 2], 0.0, None)[..., None]
-    valid = valid & (cos > MIN_COS) & (b.mean(axis=-1) >= CAST_SHADOW * albedo[:, None] * cos)
+    valid = valid & (cos > MIN_COS) & (channel_mean(b) >= CAST_SHADOW * albedo[:, None] * cos)
     return np.where(valid[..., None], b / np.where(valid, cos, 1.0)[..., None], 0.0), valid
 
 
