@@ -67,8 +67,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..models.microfacet import half_vector
 from ..io.colour import channel_mean
+from ..models.microfacet import half_vector
 
 FLAT = np.array([0.0, 0.0, 1.0])
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..models.render import light_geometry
 from ..io.colour import channel_mean
+from ..models.render import light_geometry
 
 
 def brdf_samples(radiance: np.ndarray, points: np.ndarray, lights: np.ndarray,

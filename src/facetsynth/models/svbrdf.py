@@ -135,10 +135,11 @@ def _fresnel_one(c, eta):
 def sample_terms(at, wi, wo, cos_turn, sin_turn, eta, neighbours, weights, ndf, n_theta, n_phi, area, a_theta,
                  a_phi):
     """Eq. 6's factors of S samples in one compiled pass (:meth:`SVBRDF.sample_terms`): sample s of point
-    ``at[s]`` lit from ``wi[s]``, seen from ``wo[s]`` (local directions), the point's turn (eq. 13) given
-    by its ``cos_turn``, ``sin_turn`` (P,; empty: no turn). Returns the half vector's continuous cell coordinates (t, p) in
-    the point's turned frame, D(h) (the eq. 18 mixture, clipped at 0), F(c) (c the mean of |i.h| and
-    |o.h|, eq. 3) and A(i) (eq. 5, floored at 1e-6), each (S,), with numpy's arithmetic in its order."""
+    ``at[s]`` lit from ``wi[s]``, seen from ``wo[s]`` (local directions), the point's turn (eq. 13) given by
+    its ``cos_turn``, ``sin_turn`` (P,; empty: no turn). Returns the half vector's continuous cell
+    coordinates (t, p) in the point's turned frame, D(h) (the eq. 18 mixture, clipped at 0), F(c) (c the mean
+    of |i.h| and |o.h|, eq. 3) and A(i) (eq. 5, floored at 1e-6), each (S,): the numpy methods' arithmetic
+    in their order, but for the arc cosines and tangents (libm's here, numpy's own there: equal to rounding)."""
     n = at.size
     t_out, p_out, d_out, f_out, a_out = np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty(n)
     tiny = np.finfo(np.float64).tiny

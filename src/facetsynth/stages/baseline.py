@@ -13,10 +13,10 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from ..io.colour import channel_mean
 from ..io.fileio import atomic_path, read_exr, write_json
 from ..models.ward import WardSVBRDF, fit_points
 from .common import TILE_POINTS, RectifiedCapture, RuleFiles, StageSettings, part_points, part_records
-from ..io.colour import channel_mean
 
 log = logging.getLogger(__name__)
 

@@ -18,13 +18,13 @@ import numpy as np
 
 from ..fit import cluster
 from ..fit import partial_ndf
+from ..io.colour import channel_mean
 from ..io.fileio import NpyRows, read_exr, read_json, write_json, write_npy
 from ..io.tables import SupportTable
 from ..io.frames import imap, map_frames
 from ..geometry.grid import DirectionGrid
 from ..fit.partial_ndf import relative_l2
 from .common import RectifiedCapture, RuleFiles, StageSettings, tiles
-from ..io.colour import channel_mean
 
 log = logging.getLogger(__name__)
 

@@ -21,6 +21,7 @@ import numpy as np
 
 from ..fit import params
 from ..fit.cluster import material_groups
+from ..io.colour import channel_mean
 from ..io.errors import InputError
 from ..io.fileio import atomic_dir, read_exr, read_json, read_npy, write_json
 from ..io.frames import map_frames
@@ -31,7 +32,6 @@ from ..models.svbrdf import SVBRDF
 from ..fit.synthesis import SUPPORT
 from ..evaluation.params import truth_scores
 from .common import ModelOutputs, RectifiedCapture, RuleFiles, StageSettings, tiles
-from ..io.colour import channel_mean
 
 log = logging.getLogger(__name__)
 

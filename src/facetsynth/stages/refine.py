@@ -22,6 +22,7 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 from scipy import sparse
 
+from ..io.colour import channel_mean
 from ..io.errors import InputError
 from ..io.fileio import atomic_dir, read_npy, write_json
 from ..io.frames import imap, map_frames
@@ -35,7 +36,6 @@ from ..fit.refine import (NormalSums, best_turns, gather_samples, owned_kd, radi
 
 from ..models.svbrdf import SVBRDF
 from .common import TILE_POINTS, ModelOutputs, RectifiedCapture, RuleFiles, StageSettings, strided, tiles
-from ..io.colour import channel_mean
 
 log = logging.getLogger(__name__)
 

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from ..geometry.coverage import LightFootprint, read_around, world_grid
+from ..io.colour import channel_mean
 from ..io.fileio import NpyRows, atomic_path, write_json, write_npy
 from ..io.frames import imap
 from ..geometry.grid import DirectionGrid
@@ -27,7 +28,6 @@ from ..fit.pushpull import push_pull
 from ..fit.sharpness import grid_resolution, lobe_widths
 from ..io.tables import join_tables, support_writer
 from .common import TILE_POINTS, RectifiedCapture, RuleFiles, StageSettings, part_points, part_records, tiles
-from ..io.colour import channel_mean
 
 log = logging.getLogger(__name__)
 

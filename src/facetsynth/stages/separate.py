@@ -28,6 +28,7 @@ import numpy as np
 
 from ..fit import light_factors
 from ..evaluation.separate import truth_scores
+from ..io.colour import channel_mean
 from ..io.fileio import HALF, as_half, atomic_path, read_frame, read_json, write_exr, write_json, write_npy
 from ..io.errors import InputError
 from ..io.frames import imap, map_frames
@@ -39,7 +40,6 @@ from ..models.render import light_geometry, towards
 from ..evaluation.selfcheck import heldout_lights
 from ..fit.separation import brdf_samples, diffuse_level, specular_residual
 from .common import RectifiedCapture, RuleFiles, StageSettings, flag_degenerate, strided, tiles
-from ..io.colour import channel_mean
 
 log = logging.getLogger(__name__)
 
