@@ -84,14 +84,15 @@ def point_sums(model: SVBRDF, capture: RectifiedCapture, specular, valid, index:
         parts = [point_sums(model, capture, specular, valid, index[t], separated_kd) for t in tiles(index.size)]
         return NormalSums(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(NormalSums)))
     pp, _, wi, u, rho_s, views = samples(capture, specular, valid, index)
-    return sums_of(model, index, pp, wi, u, rho_s, views, separated_kd)
-
-
-def sums_of(model: SVBRDF, index: np.ndarray, pp, wi, u, rho_s, views,
-            separated_kd: np.ndarray | None = None) -> NormalSums:
-    """:func:`point_sums` of samples already gathered (:func:`samples`' rows ``pp`` of ``index``, ...)."""
-    at = index[pp]
     _, _, d, denom = specular_factors(model, index, pp, wi, views)
+    return sums_of(model, index, pp, d, denom, u, rho_s, views, separated_kd)
+
+
+def sums_of(model: SVBRDF, index: np.ndarray, pp, d, denom, u, rho_s, views,
+            separated_kd: np.ndarray | None = None) -> NormalSums:
+    """:func:`point_sums` of samples already gathered (:func:`samples`' rows ``pp`` of ``index``, ...) whose
+    D(h) ``d`` and F / (4 A(i) A(o)) ``denom`` are known (:func:`specular_factors`)."""
+    at = index[pp]
     g = np.where(views[pp, 2] > 0.0, d * denom, 0.0)       # i.z > 0 already (samples)
     kd = model.kd if separated_kd is None else separated_kd
     return NormalSums.of(pp, len(index), rho_s + kd[at] / np.pi, g, u)
@@ -498,10 +499,10 @@ def refit_tables(model: SVBRDF, capture: RectifiedCapture, specular, valid, sett
         def equations(tile: slice, index=index) -> tuple[sparse.csr_matrix, np.ndarray]:
             idx = index[tile]
             pp, _, i, u, rho_s, views = samples(capture, specular, valid, idx)
-            a, b = solve(sums_of(model, idx, pp, i, u, rho_s, views), model.kd[idx] / np.pi, model.ks[idx],
+            t, p, d, denom = specular_factors(model, idx, pp, i, views)     # once: the sums and the lookup
+            a, b = solve(sums_of(model, idx, pp, d, denom, u, rho_s, views), model.kd[idx] / np.pi, model.ks[idx],
                          settings.ridge)
             at = idx[pp]
-            t, p, _, denom = specular_factors(model, idx, pp, i, views)
             look = grid.stencil(t, p)
             r = rho_s + model.kd[at] / np.pi - a[pp]      # the samples' rho (point_sums' y) less kd/pi
             return table_normal_equations(look.cells.T, look.weights.T, b[pp] * denom[:, None], r, u, n_cells)
