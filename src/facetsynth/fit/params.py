@@ -36,7 +36,7 @@ from scipy.optimize import least_squares
 
 from ..geometry.grid import DirectionGrid
 from ..models.microfacet import fresnel
-from .partial_ndf import SHADOWING_GRID, projected_area_table
+from .partial_ndf import SHADOWING_GRID, projected_area_on
 
 ETA_BOUNDS = (1.05, 4.0)   # physical range of relative refraction indices fitted (dielectrics, coatings)
 ETA_DEFAULT = 1.5          # where the data do not constrain eta
@@ -62,9 +62,8 @@ def projected_area(normalised_ndf: np.ndarray, grid: DirectionGrid,
     S(k) = (k . n) / A(k). S is smooth (sec. 3), so A is tabulated on a coarse
     grid and interpolated. For an all-zero NDF A = 1 (S(k) = k . n).
     """
-    k = shadowing_grid.directions.reshape(-1, 3)
     d = np.asarray(normalised_ndf, float)
-    area = projected_area_table(d.reshape((-1,) + grid.shape), grid, k)
+    area = projected_area_on(d.reshape((-1,) + grid.shape), grid, shadowing_grid)
     area = np.where(area > 1e-9, area, 1.0)
     return area.reshape(d.shape[:-2] + shadowing_grid.shape)
 
