@@ -5,7 +5,7 @@
 # A virtual rig renders its targets (rule calibration_targets); for a real rig, photograph them into
 # results/calibration/{rig}/targets/ in the layout of facetsynth.calibration (its docstring).
 
-from facetsynth.stages.calibrate import CalibrateSettings, TargetSettings
+from facetsynth.calibration.settings import CalibrateSettings, TargetSettings
 
 
 include: "calibrate_common.smk"

@@ -4,8 +4,6 @@
 
 from dataclasses import fields as _fields
 
-from facetsynth.truth.virtual_rig import VirtualRig
-
 
 def calibration_params(settings):
     """A settings dataclass's fields from config section 'calibration', its defaults for keys left out."""
@@ -15,6 +13,8 @@ def calibration_params(settings):
 def calibration_rig(wildcards):
     """The virtual rig description the targets are rendered from; none for a real rig (its targets are photos:
     the job then says where to put them)."""
+    from facetsynth.truth.virtual_rig import VirtualRig  # here, not at parse: it imports the renderer
+
     path = f"rig/descriptions/{wildcards.rig}.yaml"
     try:
         VirtualRig.load(path)

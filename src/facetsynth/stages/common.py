@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
-from typing import ClassVar, dataclass_transform
 
 import numpy as np
 
@@ -18,51 +17,11 @@ from ..geometry.coverage import LightFootprint
 from ..geometry.grid import DirectionGrid
 from ..geometry.plane import PlaneGrid
 from ..models.render import light_geometry, towards
+from .settings import FrozenFields, RuleFiles, StageSettings  # noqa: F401 (the stages' bases)
 
 log = logging.getLogger(__name__)
 
 TILE_POINTS = 256  # points per tile: bounds the memory of every per-point stage
-
-
-@dataclass_transform(frozen_default=True)
-class FrozenFields:
-    """Base whose every subclass is a frozen dataclass, without a decorator of its own: a stage's ``Inputs``,
-    ``Outputs`` and ``Settings`` are declared as their fields alone."""
-
-    def __init_subclass__(cls, **kwargs):
-        super().__init_subclass__(**kwargs)
-        dataclass(frozen=True)(cls)
-
-
-class StageSettings(FrozenFields):
-    """Base of a stage's frozen settings dataclass: one field per key of its config section (and of the keys
-    its rule takes from other sections, under their config names); the defaults are the config's
-    (tests/stages/test_config.py checks config/config.yaml against them). ``MEASURED`` names the fields that are
-    no config keys (measured defaults the rule does not pass); every other field must come from the rule."""
-
-    MEASURED: ClassVar[tuple[str, ...]] = ()
-
-    @classmethod
-    def from_params(cls, params):
-        """From a rule's ``params`` (the config section's keys); lists become tuples (a frozen settings object).
-        A field missing from the rule raises (a user's setting would be ignored), but a ``MEASURED`` one."""
-        return cls(**{f.name: _frozen(getattr(params, f.name)) for f in fields(cls)
-                      if f.name not in cls.MEASURED or hasattr(params, f.name)})
-
-
-def _frozen(value):
-    return tuple(_frozen(v) for v in value) if isinstance(value, list) else value
-
-
-class RuleFiles(FrozenFields):
-    """Base of a stage's ``Inputs`` and ``Outputs`` frozen dataclasses: one field per named file of its rule
-    (a list of paths for a named list); a field with a default may be missing from the rule."""
-
-    @classmethod
-    def from_rule(cls, files):
-        """From a rule's ``input`` or ``output`` (Snakemake's named list), by name."""
-        named = dict(files.items())
-        return cls(**{f.name: _path(named[f.name]) for f in fields(cls) if f.name in named})
 
 
 class ModelOutputs(RuleFiles):
@@ -70,10 +29,6 @@ class ModelOutputs(RuleFiles):
     fitted one a user takes away): its folder and the fit's figures."""
     svbrdf: Path
     metrics: Path
-
-
-def _path(value):
-    return [Path(v) for v in value] if isinstance(value, (list, tuple)) else Path(value)
 
 
 @dataclass(frozen=True)
