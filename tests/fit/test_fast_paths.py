@@ -13,7 +13,8 @@ from facetsynth.io import tables
 from facetsynth.geometry.coverage import LightFootprint
 from facetsynth.geometry.grid import DirectionGrid
 from facetsynth.geometry.lightplane import LightTriangulation
-from facetsynth.fit.partial_ndf import SHADOWING_GRID, _shadowing_area, _shadowing_kernel, projected_area_table
+from facetsynth.fit.partial_ndf import (SHADOWING_GRID, _shadowing_area, _shadowing_kernel, projected_area_on,
+                                       projected_area_table)
 
 from test_stages import one_material, rig_lights, write_rectified
 from test_sampling_invariance import paper_lights
@@ -33,6 +34,21 @@ def test_shadowing_area_by_fft_equals_the_dense_integral(grid):
     assert _shadowing_kernel(grid)[0] == ("dense" if grid.n_phi % 32 else "fft")
     assert np.abs(fast - dense).max() <= 1e-12 * np.abs(dense).max()
     assert np.all(fast[0] == 0.0) or np.abs(fast[0]).max() < 1e-15
+
+
+def test_the_kernel_made_once_gives_the_same_areas_to_the_bit():
+    """projected_area_on (refine renormalises every stretch it tries) reuses one read-only kernel per pair of
+    grids, and its A(k) is projected_area_table's at the shadowing grid's directions, bitwise, on a second call
+    too."""
+    grid = DirectionGrid(24, 96)
+    rng = np.random.default_rng(4)
+    d = rng.random((5,) + grid.shape) * (rng.random((5,) + grid.shape) > 0.5)
+    dense = projected_area_table(d, grid, SHADOWING_GRID.directions.reshape(-1, 3))
+    for _ in range(2):
+        np.testing.assert_array_equal(projected_area_on(d, grid, SHADOWING_GRID), dense)
+    from facetsynth.fit.partial_ndf import _grid_area_kernel
+    kernel = _grid_area_kernel(grid, SHADOWING_GRID)
+    assert kernel is _grid_area_kernel(DirectionGrid(24, 96), SHADOWING_GRID) and not kernel.flags.writeable
 
 
 def test_coverage_kernel_equals_scipy_map_coordinates():
