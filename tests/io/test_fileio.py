@@ -179,10 +179,31 @@ def test_half_float_tensors_saturate_instead_of_overflowing():
     """The per-point tensors between stages are half floats (issue 14's disk budget): rounding within
     2^-11 of the value, values beyond the half range saturated at +-65504 (never Inf), NaN kept for the
     reader's checks to see."""
-    from facetsynth.io.fileio import as_half
+    from facetsynth.io.half import as_half
     values = np.array([0.0, 1e-3, 0.1234567, 3.14159, 1234.567, 65504.0, 7e4, -1e9, 1e300])
     half = as_half(values)
     assert half.dtype == np.float16 and np.isfinite(half).all()
     assert np.allclose(half[:5], values[:5], rtol=2.0 ** -11, atol=0)
     assert half[5] == half[6] == 65504.0 and half[7] == -65504.0 and half[8] == 65504.0
     assert np.isnan(as_half(np.array([np.nan]))).all()
+
+
+def test_the_compiled_cast_to_half_is_numpys_to_the_bit():
+    """io.half.as_half (one compiled pass) against numpy's clip and cast: every finite half, the ties between
+    neighbours (round to even) and one ulp either side of them, the subnormals and the underflow to +-0,
+    saturation beyond 65504, +-Inf, NaN with payloads, float64 subnormals, a log-uniform spread of magnitudes;
+    from float32 too (the same real values: no double rounding either way)."""
+    from facetsynth.io.half import as_half
+    every = np.arange(0, 0x7C00, dtype=np.uint16).view(np.float16).astype(np.float64)
+    ties = (every[:-1] + every[1:]) / 2
+    rng = np.random.default_rng(5)
+    nans = np.array([0x7FF8000000000001, 0x7FF0000000000001, 0xFFF4000000000000, 0x7FF0040000000000],
+                    np.uint64).view(np.float64)
+    values = np.concatenate([every, -every, ties, -ties, np.nextafter(ties, np.inf), np.nextafter(ties, -np.inf),
+                             rng.choice([-1.0, 1.0], 200_000) * 2.0 ** rng.uniform(-40, 20, 200_000), nans,
+                             [0.0, -0.0, np.nan, np.inf, -np.inf, 1e300, -1e300, 5e-324, -5e-324, 2.0 ** -25,
+                              -(2.0 ** -25), 2.0 ** -25 * (1 + 2.0 ** -52), 65519.99, 65520.0, 65536.0]])
+    for v in (values, values[np.abs(values) < 3e38].astype(np.float32)):
+        expected = np.clip(v, -65504.0, 65504.0).astype(np.float16)
+        np.testing.assert_array_equal(as_half(v).view(np.uint16), expected.view(np.uint16))
+    assert as_half(np.ones((2, 3, 4))).shape == (2, 3, 4) and as_half(np.ones(3)).dtype == np.float16

@@ -537,17 +537,6 @@ class NpyRows:
         return rows
 
 
-HALF = np.float16   # the per-point tensors between stages: docs/decisions.md, "Disk at the paper's scale"
-
-
-def as_half(values: np.ndarray) -> np.ndarray:
-    """``values`` as half floats, saturated at the largest finite half (65504) rather than overflowing to
-    Inf: the dtype of the per-point tensors between stages (relative rounding 2^-11, far below a capture's
-    noise; BRDF values stay below the limit, a mirror-like peak is saturated, never infinite)."""
-    finfo = np.finfo(HALF)
-    return np.clip(np.asarray(values), finfo.min, finfo.max).astype(HALF)
-
-
 @contextlib.contextmanager
 def npy_writer(path: PathLike, dtype, shape: tuple[int, ...]) -> Iterator[Callable[[np.ndarray], None]]:
     """Write a .npy tensor of ``shape`` atomically, row blocks in order: yields ``write(block)``, which

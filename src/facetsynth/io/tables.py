@@ -10,7 +10,7 @@ densely, the two were 85 % of the intermediate data at 800 x 800 points
 - ``mask.npy``: (P, ceil(T F / 8)) uint8, each point's support as bits
   (``numpy.packbits`` of its cells in row-major order);
 - ``offsets.npy``: (P + 1,) int64, where each point's values start;
-- ``CHANNEL.npy``: (nnz,) half floats (:func:`facetsynth.io.fileio.as_half`), the
+- ``CHANNEL.npy``: (nnz,) half floats (:func:`facetsynth.io.half.as_half`), the
   values on the support, point after point, cells in row-major order; several
   channels share one support (the partial NDF's D and W).
 
@@ -28,7 +28,8 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from .fileio import HALF, PathLike, as_half, atomic_dir, npy_writer, read_json, read_npy, write_json, write_npy
+from .fileio import PathLike, atomic_dir, npy_writer, read_json, read_npy, write_json, write_npy
+from .half import HALF, as_half
 
 TABLE_FILE = "table.json"
 

@@ -29,7 +29,8 @@ import numpy as np
 from ..fit import light_factors
 from ..evaluation.separate import truth_scores
 from ..io.colour import channel_mean
-from ..io.fileio import HALF, as_half, atomic_path, read_frame, read_json, write_exr, write_json, write_npy
+from ..io.fileio import atomic_path, read_frame, read_json, write_exr, write_json, write_npy
+from ..io.half import HALF, as_half
 from ..io.errors import InputError
 from ..io.frames import imap, map_frames
 from ..fit.light_factors import Factors, fill_from_neighbours
@@ -112,7 +113,7 @@ def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threa
     against the truth (:func:`facetsynth.evaluation.separate.truth_scores`).
 
     Writes ``kd`` (EXR on the rectified grid), the specular residual (P, F, 3) in half floats
-    (:func:`~facetsynth.io.fileio.as_half`) and the sample validity (P, F) as memory-mappable .npy
+    (:func:`~facetsynth.io.half.as_half`) and the sample validity (P, F) as memory-mappable .npy
     (frames are streamed in; memory does not grow with the sample size).
     Invalid samples: saturated, a point outside the camera's view, a light held out for the self-check
     (``settings.heldout_every``), a light at or behind the point's facet, or a cast shadow (CAST_SHADOW).
