@@ -17,7 +17,7 @@ from ..geometry.coverage import LightFootprint
 from ..geometry.grid import DirectionGrid
 from ..geometry.plane import PlaneGrid
 from ..models.render import light_geometry, towards
-from .settings import FrozenFields, RuleFiles, StageSettings  # noqa: F401 (the stages' bases)
+from .settings import RuleFiles, StageSettings  # noqa: F401 (the stages import their bases from here)
 
 log = logging.getLogger(__name__)
 
