@@ -15,8 +15,8 @@ from .common import scatter_item
 
 def run_script(snakemake: Any, stage: ModuleType) -> None:
     """A stage module's ``run(inputs, outputs, settings, threads)`` from a Snakemake ``script:``: its
-    ``Inputs``, ``Outputs`` and ``Settings`` filled by name from the rule (:class:`facetsynth.stages.common.RuleFiles`,
-    :class:`~facetsynth.stages.common.StageSettings`), run by :func:`run_stage`; a scatter part's rule
+    ``Inputs``, ``Outputs`` and ``Settings`` filled by name from the rule (:class:`facetsynth.stages.settings.RuleFiles`,
+    :class:`~facetsynth.stages.settings.StageSettings`), run by :func:`run_stage`; a scatter part's rule
     (the ``{scatteritem}`` wildcard) also passes its ``part``: (part, parts) of
     :func:`~facetsynth.stages.common.scatter_item`."""
     scatter = ({"part": scatter_item(snakemake.wildcards.scatteritem)}
