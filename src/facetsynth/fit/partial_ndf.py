@@ -72,16 +72,17 @@ def _projected_area(ndf: np.ndarray, kernel: np.ndarray) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=8)
-def _shadowing_kernel(grid: DirectionGrid) -> tuple[str, np.ndarray]:
+def _shadowing_kernel(grid: DirectionGrid) -> tuple[str, np.ndarray | None]:
     """How :func:`shadowing_table` integrates eq. 5 on ``grid``, computed once per grid.
 
     max(h . k, 0) depends on the azimuths of h and k only through their difference, so for each pair
     of rings (h's, k's) A(k) is a circular correlation along phi: ("fft", the kernel's spectrum (T, Ts,
     F/2 + 1)) when SHADOWING_GRID's sectors fall every m-th of the grid's (n_phi = m x 32: every grid
     :func:`facetsynth.fit.sharpness.grid_resolution` makes), O(T Ts F log F) per point against O(T F Ts Fs)
-    for the product with :func:`area_kernel`, which any other grid uses ("dense", (T*F, Ts*Fs))."""
+    for the product with :func:`area_kernel`, which any other grid uses ("dense", None: the kernel is
+    :func:`projected_area_on`'s, made once there)."""
     if grid.n_phi % SHADOWING_GRID.n_phi:
-        return "dense", area_kernel(grid, SHADOWING_GRID.directions.reshape(-1, 3))
+        return "dense", None
     m = grid.n_phi // SHADOWING_GRID.n_phi
     lag = (np.arange(grid.n_phi) - (m - 1) / 2) * grid.d_phi         # phi_h - phi_k for h's sector j m + lag
     st, ct = np.sin(grid.theta)[:, None, None], np.cos(grid.theta)[:, None, None]
@@ -95,7 +96,7 @@ def _shadowing_area(ndf: np.ndarray, grid: DirectionGrid) -> np.ndarray:
     :func:`projected_area_table` (the method: :func:`_shadowing_kernel`)."""
     method, kernel = _shadowing_kernel(grid)
     if method == "dense":
-        return _projected_area(ndf.reshape(len(ndf), -1), kernel)
+        return projected_area_on(ndf, grid, SHADOWING_GRID)
     spectrum = scipy.fft.rfft(ndf, axis=-1).transpose(2, 0, 1)                       # (f, P, T)
     summed = np.matmul(spectrum, kernel.transpose(2, 0, 1))                          # (f, P, Ts): sum over rings
     return _every_mth_lag(summed, grid.n_phi, grid.n_phi // SHADOWING_GRID.n_phi).transpose(1, 2, 0).reshape(
