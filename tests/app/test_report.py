@@ -95,6 +95,34 @@ def test_unwrapped_brdf_puts_a_lobe_at_its_light_and_view_cell():
     assert np.isfinite(shown).all() and shown.min() >= 0.0 and shown.max() <= 1.0
 
 
+def test_the_stencil_figure_made_once_draws_each_cluster_as_a_fresh_one():
+    """report_stencil draws every cluster in one figure: after a cluster a million times brighter, the next
+    one's images, colour scales and tick labels are its own (data and model at the data's scale, the grey bar
+    labelled in it, the difference 3 x |model - data| on 0 .. scale), and its layout a fresh figure's within
+    3 pixels (constrained layout starts from where the last drawing left the axes: measured 1.8 pixels)."""
+    rng = np.random.default_rng(3)
+    bright = rng.random((288, 288, 3)) * 1e3
+    dim = rng.random((288, 288, 3)) * 1e-3
+    dim_model = dim * rng.random(dim.shape)
+    sheet = figures.UnwrappedBRDFFigure()
+    rendered(sheet.show(bright, 0.5 * bright, "a much longer title of another cluster " * 3))
+    height = rendered(sheet.show(dim, dim_model, "dim")).shape[0]
+    scale = figures.display_scale(dim, percentile=99.0)
+    shown, fitted, diff = (ax.images[0] for ax in sheet.fig.axes[:3])
+    np.testing.assert_array_equal(shown.get_array(), figures.tonemap(dim, scale))
+    np.testing.assert_array_equal(fitted.get_array(), figures.tonemap(dim_model, scale))
+    np.testing.assert_array_equal(diff.get_array(), 3.0 * figures.luminance(np.abs(dim_model - dim)))
+    assert diff.get_clim() == (0.0, scale)
+    grey = sheet.fig.axes[3]
+    assert [t.get_text() for t in grey.get_yticklabels()] == [f"{t:.3g}" for t in np.linspace(0.0, scale, 5)]
+    assert sheet.fig._suptitle.get_text() == "dim"
+    fresh = figures.unwrapped_brdf_figure(dim, dim_model, "dim")
+    rendered(fresh)
+    for old, new in zip(sheet.fig.axes, fresh.axes, strict=True):
+        assert [t.get_text() for t in old.get_yticklabels()] == [t.get_text() for t in new.get_yticklabels()]
+        np.testing.assert_allclose(old.get_position().bounds, new.get_position().bounds, atol=3.0 / height)
+
+
 def test_ndf_polar_plot_draws_plus_y_up_and_theta_outwards():
     """A lobe at phi = 90 deg (+y), theta = 30 deg is drawn straight above the plot's centre, a third of
     the 90-degree radius out, like +y on the maps."""
