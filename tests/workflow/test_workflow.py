@@ -275,6 +275,8 @@ def test_import_enters_the_same_pipeline(repo, tmp_path, foreign_capture):
     assert rectified.shape == (64, 64, 3) and np.isfinite(rectified).all() and rectified.max() > 0
     assert metrics(workdir, "mine", "partial_ndf")["ground_truth"] is False
     assert np.isfinite(tables.load(workdir / "results/mine/partial_ndf/ndf", "ndf")).all()
+    assert not (workdir / "results/mine/resample/slice").exists()          # temp(): partial_ndf has read it
+    assert (workdir / "results/mine/resample/grid.json").is_file()
     assert (workdir / "results/mine/svbrdf/model.json").is_file()          # the fitted SVBRDF ...
     assert metrics(workdir, "mine", "stencil_fit")["ground_truth"] is False  # ... and its stencil models
     assert not (workdir / "results/mine/validate").exists()                # no truth to hold out ...

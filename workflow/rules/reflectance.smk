@@ -43,7 +43,9 @@ rule resample:  # the whole capture; with scatter.tiles > 1 the join of resample
             records="results/{{sample}}/resample/parts/{scatteritem}/record.npz",
         ),
     output:
-        slice=directory("results/{sample}/resample/slice"),
+        # the per-point slices are read by partial_ndf alone: deleted once it has them (--notemp keeps them;
+        # a forced partial_ndf runs resample again). At 800^2 x 480 they are 4.8 of the 15 GB rectify..refine write
+        slice=temp(directory("results/{sample}/resample/slice")),
         colour="results/{sample}/resample/specular_colour.npy",
         grid="results/{sample}/resample/grid.json",
         metrics="results/{sample}/resample/metrics.json",
