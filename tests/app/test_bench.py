@@ -1,5 +1,6 @@
 """Speed against accuracy: the presets reach the rules, and the benchmark's collection (fast tests only)."""
 
+import functools
 import json
 import shutil
 import subprocess
@@ -156,28 +157,31 @@ def test_machine_description():
     assert "cores" in bench.machine_description()
 
 
-def write_benchmark(path: Path, seconds: float, cpu: float, rss: float) -> None:
+def write_benchmark(path: Path, seconds: float, cpu: float, rss: float, io_out: float = 0.0) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text("s\th:m:s\tmax_rss\tmax_vms\tmax_uss\tmax_pss\tio_in\tio_out\tmean_load\tcpu_time\n"
-                    f"{seconds}\t0:00:01\t{rss}\t1\t1\t1\t0\t0\t50\t{cpu}\n")
+                    f"{seconds}\t0:00:01\t{rss}\t1\t1\t1\t0\t{io_out}\t50\t{cpu}\n")
 
 
 def test_scale_rows_join_scatter_parts_and_total_rectify_to_params(tmp_path):
     """A stage split in scatter parts (run side by side) costs its slowest part plus the join in wall time
-    and the sum in CPU time; 'total' sums rectify through params; bytes are the stage folders' sizes."""
+    and the sum in CPU time and in MiB written; 'total' sums rectify through params; bytes are the stage
+    folders' sizes."""
     root = tmp_path / "results/scale"
     for k, stage in enumerate(bench.FIT_STAGES):
-        write_benchmark(root / "benchmarks" / f"{stage}.tsv", 1.0 + k, 0.5 + k, 100.0 * (k + 1))
+        write_benchmark(root / "benchmarks" / f"{stage}.tsv", 1.0 + k, 0.5 + k, 100.0 * (k + 1), io_out=2.0 * k)
         (root / stage).mkdir(parents=True)
         (root / stage / "out.npy").write_bytes(b"x" * (10 * (k + 1)))
-    write_benchmark(root / "benchmarks/partial_ndf/1-of-2.tsv", 30.0, 29.0, 2000.0)
-    write_benchmark(root / "benchmarks/partial_ndf/2-of-2.tsv", 40.0, 39.0, 1500.0)
+    write_benchmark(root / "benchmarks/partial_ndf/1-of-2.tsv", 30.0, 29.0, 2000.0, io_out=300.0)
+    write_benchmark(root / "benchmarks/partial_ndf/2-of-2.tsv", 40.0, 39.0, 1500.0, io_out=400.0)
     (root / "svbrdf").mkdir()
     (root / "svbrdf/model.json").write_bytes(b"y" * 7)
     rows = {r["stage"]: r for r in bench.scale_rows(root, 4096, 480)}
     k = bench.FIT_STAGES.index("partial_ndf")
     assert rows["partial_ndf"]["wall_s"] == 40.0 + 1.0 + k and rows["partial_ndf"]["cpu_s"] == 29 + 39 + 0.5 + k
     assert rows["partial_ndf"]["max_rss_mb"] == 2000.0
+    assert rows["partial_ndf"]["io_out_mib"] == 300.0 + 400.0 + 2.0 * k   # the parts' tables and the join's
+    assert rows["total"]["io_out_mib"] == sum(2.0 * bench.FIT_STAGES.index(s) for s in bench.TOTAL_STAGES) + 700.0
     assert rows["params"]["bytes_written"] == 10 * (bench.FIT_STAGES.index("params") + 1)
     assert rows["refine"]["bytes_written"] == 10 * (bench.FIT_STAGES.index("refine") + 1) + 7   # with svbrdf/
     fit = [bench.FIT_STAGES.index(s) for s in bench.TOTAL_STAGES]
@@ -185,6 +189,22 @@ def test_scale_rows_join_scatter_parts_and_total_rectify_to_params(tmp_path):
     assert rows["total"]["points"] == 4096 and rows["total"]["frames"] == 480
     path = bench.write_csv(rows.values(), tmp_path / "scale.csv", bench.SCALE_COLUMNS)
     assert path.read_text().splitlines()[0] == ",".join(bench.SCALE_COLUMNS)
+
+
+def test_each_stage_writes_at_the_disks_speed_measured_beside_it(tmp_path):
+    """write_disk's row: the bytes it wrote and synced, and the file gone; with_write_floors prices a stage's
+    MiB at that run's speed (not another run's), and leaves a stage with no io_out without a floor."""
+    floor = bench.write_floor(tmp_path, 4096, 480, size=8 << 20)
+    assert floor["stage"] == "write_disk" and floor["bytes_written"] == 8 << 20 and floor["wall_s"] > 0
+    assert not any(tmp_path.iterdir())
+    rows = [{"points": 4096, "frames": 480, "stage": "write_disk", "wall_s": 2.0, "bytes_written": 1 << 30},
+            {"points": 9, "frames": 480, "stage": "write_disk", "wall_s": 1.0, "bytes_written": 1 << 30},
+            {"points": 4096, "frames": 480, "stage": "resample", "wall_s": 9.0, "io_out_mib": 1536.0},
+            {"points": 4096, "frames": 480, "stage": "synthesize", "wall_s": 1.0, "io_out_mib": None}]
+    priced = {r["stage"] + str(r["points"]): r for r in bench.with_write_floors(rows)}
+    assert priced["resample4096"]["write_floor_s"] == pytest.approx(3.0)    # 1.5 GiB at 0.5 GiB/s
+    assert priced["synthesize4096"]["write_floor_s"] is None
+    assert "write_disk" not in bench.growth_exponents(rows)
 
 
 def test_growth_exponents_recover_power_laws():
@@ -197,7 +217,7 @@ def test_growth_exponents_recover_power_laws():
     assert exponents["params"] == (None, None)       # one size: no exponent
 
 
-def test_bench_scale_records_a_run_before_pruning_it(tmp_path, repo):
+def test_bench_scale_records_a_run_before_pruning_it(tmp_path, repo, monkeypatch):
     """make bench-scale --prune: a run's rows (stages, total, floor) are recorded right after it, in
     benchmarks/scale_rows.json; pruning deletes its frames and per-point tables but keeps metrics, logs,
     benchmarks and the SVBRDF; the recorded rows still give the sizes the tables had."""
@@ -214,6 +234,7 @@ def test_bench_scale_records_a_run_before_pruning_it(tmp_path, repo):
     (root / "hdr/frames").mkdir(parents=True)
     (root / "svbrdf").mkdir()
     (root / "svbrdf/model.json").write_text("{}")
+    monkeypatch.setattr(bench, "write_floor", functools.partial(bench.write_floor, size=1 << 20))   # not 1 GiB
     rows = bench_scale.recorded(root, 64, 480)
     bench_scale.prune(root)
     assert not (root / "partial_ndf/table.npy").exists() and not (root / "resample/table.npy").exists()
@@ -224,6 +245,7 @@ def test_bench_scale_records_a_run_before_pruning_it(tmp_path, repo):
     by_stage = {r["stage"]: r for r in again}
     assert by_stage["partial_ndf"]["bytes_written"] == 1000 * (bench.FIT_STAGES.index("partial_ndf") + 1) + 2
     assert by_stage["read_frames"]["points"] == 64 * 64 and "total" in by_stage
+    assert by_stage["write_disk"]["bytes_written"] == 1 << 20 and by_stage["refine"]["write_floor_s"] == 0.0
 
 
 def test_real_rows_and_table_from_a_results_tree(tmp_path):

@@ -10,7 +10,8 @@ their tiles on the job's 2 threads, with nothing to join). A
 finished run is not repeated (Snakemake finds its outputs up to date), so an interrupted bench resumes.
 
 Writes results/bench/scale.csv (facetsynth.app.bench.SCALE_COLUMNS: one row per run and stage, plus stage
-"total", rectify through params, and stage "read_frames", the floor: reading the merged frames once) and
+"total", rectify through params; stage "read_frames", the floor of reading the merged frames once, and stage
+"write_disk", the disk's speed for writing 1 GiB, at which each stage's write_floor_s prices what it wrote) and
 scale.png (wall seconds against P and F per stage, log-log, with each stage's fitted exponent).
 
     python workflow/scripts/bench_scale.py [--points 64 128 256 512 800] [--frames 120 480 1360 2600]
@@ -118,13 +119,15 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def recorded(root: Path, points: int, frames: int) -> list[dict]:
-    """The run's rows (:func:`facetsynth.app.bench.scale_rows` and its floor, :func:`facetsynth.app.bench.read_floor`),
-    measured once and kept in ``benchmarks/scale_rows.json`` beside its results: a later --collect-only must
-    not measure the floor under other load, and needs no intermediates of a pruned run."""
+    """The run's rows (:func:`facetsynth.app.bench.scale_rows` and its floors, :func:`facetsynth.app.bench.read_floor`
+    and :func:`facetsynth.app.bench.write_floor`, which prices each stage's writes), measured once and kept in
+    ``benchmarks/scale_rows.json`` beside its results: a later --collect-only must not measure the floors under
+    other load, and needs no intermediates of a pruned run."""
     saved = root / "benchmarks" / "scale_rows.json"
     if not saved.is_file():
-        rows = bench.scale_rows(root, points * points, frames) + [bench.read_floor(root, points * points, frames)]
-        saved.write_text(json.dumps(rows))
+        p = points * points
+        rows = bench.scale_rows(root, p, frames) + [bench.read_floor(root, p, frames), bench.write_floor(root, p, frames)]
+        saved.write_text(json.dumps(bench.with_write_floors(rows)))
     return json.loads(saved.read_text())
 
 

@@ -11,6 +11,7 @@ import csv
 import json
 import math
 import os
+import time
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
@@ -34,18 +35,24 @@ def _number(text: str | None) -> float | None:
 
 
 def read_benchmark(path: str | Path) -> dict[str, float | None]:
-    """Seconds, peak resident memory (MB) and CPU seconds of one Snakemake benchmark file
-    ({'s', 'max_rss', 'cpu_time'}); the means of the seconds and the largest max_rss over its rows
-    (``benchmark: repeat(...)``)."""
+    """Seconds, peak resident memory (MB), CPU seconds and MiB written of one Snakemake benchmark file
+    ({'s', 'max_rss', 'cpu_time', 'io_out'}); the means over its rows (``benchmark: repeat(...)``) but for
+    max_rss, the largest. ``io_out`` is what the job's processes wrote to the disk (Linux's write_bytes, as
+    Snakemake last sampled it), files it deleted or Snakemake deleted after it (``temp()``) included."""
     with open(path, newline="") as f:
         rows = list(csv.DictReader(f, delimiter="\t"))
     if not rows:
         raise ValueError(f"{path}: benchmark file has no rows")
-    seconds = [v for v in (_number(r.get("s")) for r in rows) if v is not None]
-    rss = [v for v in (_number(r.get("max_rss")) for r in rows) if v is not None]
-    cpu = [v for v in (_number(r.get("cpu_time")) for r in rows) if v is not None]
-    return {"s": sum(seconds) / len(seconds) if seconds else None, "max_rss": max(rss) if rss else None,
-            "cpu_time": sum(cpu) / len(cpu) if cpu else None}
+
+    def values(column):
+        return [v for v in (_number(r.get(column)) for r in rows) if v is not None]
+
+    def mean(column):
+        found = values(column)
+        return sum(found) / len(found) if found else None
+
+    return {"s": mean("s"), "max_rss": max(values("max_rss"), default=None), "cpu_time": mean("cpu_time"),
+            "io_out": mean("io_out")}
 
 
 def _json(path: Path) -> dict:
@@ -101,15 +108,17 @@ def write_csv(rows: Iterable[dict], path: str | Path, columns: Sequence[str] = C
 
 # --- growth with points and frames (make bench-scale, issue 14) ------------------------------------
 
-SCALE_COLUMNS = ["points", "frames", "stage", "wall_s", "cpu_s", "max_rss_mb", "bytes_written"]
+SCALE_COLUMNS = ["points", "frames", "stage", "wall_s", "cpu_s", "max_rss_mb", "bytes_written", "io_out_mib",
+                 "write_floor_s"]
 #: What a user with HDR frames pays: rectify through params (the row with stage "total").
 TOTAL_STAGES = PRESET_STAGES
 
 
 def stage_cost(root: str | Path, stage: str) -> dict | None:
-    """Wall and CPU seconds, peak RSS (MB) of one stage of a run (``results/{sample}``), from its benchmark
-    file and those of its scatter parts (``benchmarks/{stage}/*.tsv``, run side by side): wall = the
-    slowest part + the join, CPU = the sum, RSS = the largest. None if the stage has no benchmark."""
+    """Wall and CPU seconds, peak RSS (MB) and MiB written of one stage of a run (``results/{sample}``), from
+    its benchmark file and those of its scatter parts (``benchmarks/{stage}/*.tsv``, run side by side): wall =
+    the slowest part + the join, CPU and MiB written = the sums, RSS = the largest. None if the stage has no
+    benchmark."""
     root = Path(root)
     main = root / "benchmarks" / f"{stage}.tsv"
     if not main.is_file():
@@ -119,8 +128,9 @@ def stage_cost(root: str | Path, stage: str) -> dict | None:
     wall = [p["s"] for p in parts if p["s"] is not None]
     cpu = [p["cpu_time"] for p in parts + [joined] if p["cpu_time"] is not None]
     rss = [p["max_rss"] for p in parts + [joined] if p["max_rss"] is not None]
+    written = [p["io_out"] for p in parts + [joined] if p["io_out"] is not None]
     return {"wall_s": (joined["s"] or 0.0) + max(wall, default=0.0), "cpu_s": sum(cpu) if cpu else None,
-            "max_rss_mb": max(rss) if rss else None}
+            "max_rss_mb": max(rss) if rss else None, "io_out_mib": sum(written) if written else None}
 
 
 def folder_bytes(*paths: str | Path) -> int:
@@ -134,8 +144,9 @@ def folder_bytes(*paths: str | Path) -> int:
 
 def scale_rows(root: str | Path, points: int, frames: int) -> list[dict]:
     """scale.csv's rows of one run (``results/{sample}``): one per stage (FIT_STAGES), ``bytes_written``
-    the size of the stage's output folder (refine: with ``svbrdf/``), and ``total`` over TOTAL_STAGES
-    (wall and CPU summed, RSS the largest, bytes summed)."""
+    the size of the stage's output folder once the run is over (refine: with ``svbrdf/``): what it leaves on
+    the disk; ``io_out_mib`` what its jobs wrote (:func:`stage_cost`: with what was deleted, resample's
+    ``temp()`` slices); and ``total`` over TOTAL_STAGES (wall and CPU summed, RSS the largest, bytes summed)."""
     root = Path(root)
     rows = []
     for stage in FIT_STAGES:
@@ -150,7 +161,8 @@ def scale_rows(root: str | Path, points: int, frames: int) -> list[dict]:
         rows.append({"points": points, "frames": frames, "stage": "total",
                      "wall_s": sum(r["wall_s"] for r in fit), "cpu_s": sum(r["cpu_s"] or 0.0 for r in fit),
                      "max_rss_mb": max((r["max_rss_mb"] or 0.0) for r in fit),
-                     "bytes_written": sum(r["bytes_written"] for r in fit)})
+                     "bytes_written": sum(r["bytes_written"] for r in fit),
+                     "io_out_mib": sum(r["io_out_mib"] or 0.0 for r in fit)})
     return rows
 
 
@@ -158,8 +170,6 @@ def read_floor(root: str | Path, points: int, frames: int, threads: int = 2) -> 
     """The floor of a run (stage ``read_frames``): reading its merged frames (``hdr/frames``, what rectify
     reads) once with the pipeline's reader on ``threads`` threads, as rectify does; ``bytes_written`` here
     is the bytes read. Measured after the run, so from the page cache when the frames still fit in it."""
-    import time
-
     from ..io.fileio import read_frame
     from ..io.frames import map_frames
     files = sorted((Path(root) / "hdr" / "frames").glob("*.exr"))
@@ -167,6 +177,39 @@ def read_floor(root: str | Path, points: int, frames: int, threads: int = 2) -> 
     map_frames(lambda f: read_frame(f)[0].shape, files, threads, "read_frames")
     return {"points": points, "frames": frames, "stage": "read_frames", "wall_s": time.perf_counter() - start,
             "cpu_s": time.process_time() - cpu, "max_rss_mb": None, "bytes_written": folder_bytes(*files)}
+
+
+def write_floor(root: str | Path, points: int, frames: int, size: int = 1 << 30) -> dict:
+    """The disk's floor for writing (stage ``write_disk``): ``size`` bytes written to a file in ``root`` and
+    synced to the disk (``os.fsync``), then deleted; ``bytes_written`` is ``size``. Measured beside the run, as
+    :func:`read_floor`, so that :func:`with_write_floors` prices each stage's writes at that hour's speed."""
+    chunk = os.urandom(min(size, 64 << 20))          # bytes that no file system compresses
+    path = Path(root) / ".write_floor"
+    start, cpu = time.perf_counter(), time.process_time()
+    try:
+        with open(path, "wb") as f:
+            for _ in range(max(1, size // len(chunk))):
+                f.write(chunk)
+            f.flush()
+            os.fsync(f.fileno())
+        written = path.stat().st_size
+    finally:
+        path.unlink(missing_ok=True)
+    return {"points": points, "frames": frames, "stage": "write_disk", "wall_s": time.perf_counter() - start,
+            "cpu_s": time.process_time() - cpu, "max_rss_mb": None, "bytes_written": written}
+
+
+def with_write_floors(rows: Sequence[dict]) -> list[dict]:
+    """``rows`` with ``write_floor_s`` on each stage's: the seconds its ``io_out_mib`` takes at the speed of the
+    ``write_disk`` row of the same run (points, frames); None where either is missing."""
+    speed = {(r["points"], r["frames"]): r["bytes_written"] / r["wall_s"] for r in rows
+             if r["stage"] == "write_disk" and r.get("wall_s")}
+    out = []
+    for r in rows:
+        rate = speed.get((r["points"], r["frames"]))
+        mib = r.get("io_out_mib")
+        out.append({**r, "write_floor_s": mib * 2**20 / rate if rate and mib is not None else None})
+    return out
 
 
 def growth_exponent(sizes: Sequence[float], seconds: Sequence[float | None]) -> float | None:
@@ -183,9 +226,9 @@ def growth_exponent(sizes: Sequence[float], seconds: Sequence[float | None]) -> 
 def growth_exponents(rows: Sequence[dict], points_sweep_frames: int = 480,
                      frames_sweep_points: int = 128 * 128) -> dict[str, tuple[float | None, float | None]]:
     """Per stage, the wall-time exponent in P (the runs at ``points_sweep_frames`` frames) and in F (the
-    runs at ``frames_sweep_points`` points)."""
+    runs at ``frames_sweep_points`` points); none for ``write_disk``, the same gigabyte at every size."""
     out = {}
-    for stage in dict.fromkeys(r["stage"] for r in rows):
+    for stage in dict.fromkeys(r["stage"] for r in rows if r["stage"] != "write_disk"):
         mine = [r for r in rows if r["stage"] == stage]
         by_points = [r for r in mine if r["frames"] == points_sweep_frames]
         by_frames = [r for r in mine if r["points"] == frames_sweep_points]
