@@ -156,6 +156,28 @@ def test_separation_in_frame_blocks_equals_one_frame_at_a_time(tmp_path, monkeyp
     assert outputs["one"][0].shape == (81, 33, 3) and outputs["one"][0].any()
 
 
+def test_frame_blocks_write_each_block_as_one_stretch_and_read_back_points_rows(tmp_path, monkeypatch):
+    """separate's scratch (FrameBlocks) holds eq. 8's samples block of frames after block of frames, each block
+    one contiguous (P, FRAME_BLOCK, ...) stretch of its file (a block of columns of a (P, F, 3) table touched
+    every page at each block); rows() gives any points' (p, F, 3) and (p, F), the last block's padding cut."""
+    from facetsynth.stages import separate
+    monkeypatch.setattr(separate, "FRAME_BLOCK", 4)
+    rng = np.random.default_rng(8)
+    rho = rng.random((13, 10, 3)).astype(np.float32)
+    valid = rng.random((13, 10)) > 0.3
+    blocks = separate.FrameBlocks(tmp_path / "x.eq8", 13, 10)
+    for first in (8, 0, 4):                                            # any order; the last block holds 2 frames
+        frames = range(first, min(first + 4, 10))
+        blocks.put(first, [(rho[:, q], valid[:, q]) for q in frames])
+    on_disk = np.load(separate.FrameBlocks.files(tmp_path / "x.eq8")[0], mmap_mode="r")
+    assert on_disk.shape == (3, 13, 4, 3)
+    np.testing.assert_array_equal(on_disk[1], rho[:, 4:8])            # frames 4-7 of every point, in one stretch
+    for points in (slice(0, 13), slice(3, 9), np.array([12, 0, 5])):
+        got_rho, got_valid = blocks.rows(points)
+        np.testing.assert_array_equal(got_rho, rho[points])
+        np.testing.assert_array_equal(got_valid, valid[points])
+
+
 def test_tiles_on_threads_equal_one_thread(tmp_path):
     """resample and partial_ndf with their tiles on 2 threads write the same bytes as on one, run after run."""
     from facetsynth.geometry.plane import PlaneGrid

@@ -52,7 +52,7 @@ SIGNAL_RATIO = 0.5
 # Fewer points than this fraction with specular signal: a matte sample, or lights that miss every highlight;
 # a diffuse-only model is all the capture supports. Black markers, dust and dead pixels stay below it.
 MIN_SIGNAL_FRACTION = 0.01
-FRAME_BLOCK = 32    # frames read before their samples are written
+FRAME_BLOCK = 32    # frames read before their samples are written, as one contiguous block (FrameBlocks)
 # A sample whose luminance is below CAST_SHADOW x what the point's diffuse part predicts, (kd/pi) n . i, lies in a
 # cast shadow of the relief (or is occluded): invalid. Sensor noise and the darkest diffuse samples stay above it.
 CAST_SHADOW = 0.5
@@ -158,44 +158,82 @@ def fit(capture: RectifiedCapture, settings: Settings, specular_out: str | Path,
     ``intensities_from``, the geometry of a capture without intensities: from its ``reference_region`` when it
     names one, else from the whole sample), eq. 9 (:func:`eq9_residuals`). The specular residual and the
     validity tables are written as they are made, each whole or not at all, to ``specular_out`` and
-    ``valid_out``; eq. 8's samples in float32 beside them (a temporary: swept if this process dies), so that
-    eq. 9's kd is not rounded to half floats."""
+    ``valid_out``; eq. 8's samples in float32 beside them (:class:`FrameBlocks`, a temporary: swept if this
+    process dies), so that eq. 9's kd is not rounded to half floats."""
     with atomic_path(specular_out, suffix=".npy") as tmp_spec, atomic_path(valid_out, suffix=".npy") as tmp_valid:
-        scratch = tmp_spec.with_name(tmp_spec.name + ".eq8.npy")
+        scratch = tmp_spec.with_name(tmp_spec.name + ".eq8")
         try:
             return _separate(capture, settings, threads, scratch, tmp_spec, tmp_valid, intensities_from)
         finally:
-            scratch.unlink(missing_ok=True)
+            for path in FrameBlocks.files(scratch):
+                path.unlink(missing_ok=True)
 
 
 def _separate(capture: RectifiedCapture, settings: Settings, threads: int, scratch: Path, specular_out: Path,
               valid_out: Path, intensities_from: dict | None = None) -> Separated:
-    """:func:`fit` into the files ``scratch`` (eq. 8), ``specular_out`` and ``valid_out``."""
-    rho, valid = eq8_samples(capture, heldout_lights(len(capture.frame_files), settings.heldout_every), scratch,
-                             valid_out, threads)
+    """:func:`fit` into the files ``scratch`` (eq. 8, :class:`FrameBlocks`), ``specular_out`` and ``valid_out``."""
+    samples = eq8_samples(capture, heldout_lights(len(capture.frame_files), settings.heldout_every), scratch,
+                          threads)
     n_points = capture.n_points
     normals, albedo = np.tile(FLAT, (n_points, 1)), np.zeros(n_points)
     diffuse = np.zeros(n_points, bool)        # points that tell their normal from the diffuse part
     if settings.shading_normals:
-        normals, albedo, diffuse = shading_normals(capture, rho, valid, threads)
+        normals, albedo, diffuse = shading_normals(capture, samples, threads)
     factors = None
     if intensities_from is not None:
-        factors = _light_factors(rho, valid, capture, normals, capture.visible & diffuse,
+        factors = _light_factors(samples, capture, normals, capture.visible & diffuse,
                                  intensities_from.get("reference_region"))
-    kd, signal = eq9_residuals(capture, settings, rho, valid, normals, albedo, factors, specular_out, threads)
+    kd, signal = eq9_residuals(capture, settings, samples, normals, albedo, factors, specular_out, valid_out, threads)
     return Separated(kd, signal, normals, factors)
 
 
-def eq8_samples(capture: RectifiedCapture, held: np.ndarray, scratch: Path, valid_out: Path,
-                threads: int = 1) -> tuple[np.ndarray, np.ndarray]:
-    """Eq. 8 frame by frame, with the plane's normal: rho (P, F, 3) float32 memory-mapped in ``scratch``, and the
-    samples' validity (P, F) memory-mapped in ``valid_out``: visible, not saturated, not a ``held`` light.
-    Frames are read on ``threads`` threads and written FRAME_BLOCK at a time as one block of columns: a frame
-    alone would touch every page of the (P, F, 3) file for 12 bytes a point."""
+class FrameBlocks:
+    """Eq. 8's samples rho (P, F, 3) float32 and their validity (P, F), kept as blocks of FRAME_BLOCK frames:
+    two files, (blocks, P, FRAME_BLOCK, 3) and (blocks, P, FRAME_BLOCK), at ``scratch`` + ".rho.npy" and
+    ".valid.npy" (the last block padded).
+
+    - A block of frames is written once, as one contiguous stretch of each file. In (P, F, 3) order a block is
+      a block of columns, which touches every page of the file: at 800^2 x 480 each of the 15 blocks dirtied the
+      whole 3.7 GB again, and the process wrote 62 GB for it (6.2 GB now, with the outputs).
+    - Each :meth:`put` and :meth:`rows` maps the files for the call alone: the pages stay in the page cache, not
+      in the process's resident memory, and nothing forces them to the disk (a scratch deleted before the
+      kernel writes it back is never written)."""
+
+    def __init__(self, scratch: Path, n_points: int, n_frames: int):
+        blocks = -(-n_frames // FRAME_BLOCK)
+        self.paths = self.files(scratch)
+        for path, dtype, shape in zip(self.paths, (np.float32, bool), ((blocks, n_points, FRAME_BLOCK, 3),
+                                                                       (blocks, n_points, FRAME_BLOCK))):
+            np.lib.format.open_memmap(path, mode="w+", dtype=dtype, shape=shape)    # the file made, not mapped on
+        self.n_frames = n_frames
+
+    @staticmethod
+    def files(scratch: Path) -> tuple[Path, Path]:
+        return scratch.with_name(scratch.name + ".rho.npy"), scratch.with_name(scratch.name + ".valid.npy")
+
+    def put(self, first: int, block: list[tuple[np.ndarray, np.ndarray]]) -> None:
+        """The samples (P, 3) and validity (P,) of frames ``first``, ``first`` + 1, ... (``first`` starts a block)."""
+        k, n = first // FRAME_BLOCK, len(block)
+        rho, valid = (np.load(path, mmap_mode="r+") for path in self.paths)
+        rho[k, :, :n] = np.stack([s for s, _ in block], axis=1)
+        valid[k, :, :n] = np.stack([v for _, v in block], axis=1)
+
+    def rows(self, points) -> tuple[np.ndarray, np.ndarray]:
+        """rho (p, F, 3) float32 and validity (p, F) of ``points`` (a slice or indices): copies, read block by
+        block."""
+        rho, valid = (np.load(path, mmap_mode="r")[:, points] for path in self.paths)
+        p = rho.shape[1]
+        return (np.array(rho.transpose(1, 0, 2, 3).reshape(p, -1, 3)[:, :self.n_frames]),
+                np.array(valid.transpose(1, 0, 2).reshape(p, -1)[:, :self.n_frames]))
+
+
+def eq8_samples(capture: RectifiedCapture, held: np.ndarray, scratch: Path, threads: int = 1) -> FrameBlocks:
+    """Eq. 8 frame by frame, with the plane's normal: rho (P, F, 3) float32 and the samples' validity (P, F):
+    visible, not saturated, not a ``held`` light; memory-mapped at ``scratch`` (:class:`FrameBlocks`). Frames
+    are read on ``threads`` threads and written FRAME_BLOCK at a time."""
     n_points, n_frames = capture.n_points, len(capture.frame_files)
     points = capture.points
-    rho = np.lib.format.open_memmap(scratch, mode="w+", dtype=np.float32, shape=(n_points, n_frames, 3))
-    valid = np.lib.format.open_memmap(valid_out, mode="w+", dtype=bool, shape=(n_points, n_frames))
+    samples = FrameBlocks(scratch, n_points, n_frames)
 
     def frame_samples(q: int) -> tuple[np.ndarray, np.ndarray]:
         radiance, saturated = read_frame(capture.frame_files[q])
@@ -204,20 +242,16 @@ def eq8_samples(capture: RectifiedCapture, held: np.ndarray, scratch: Path, vali
         return sample[:, 0].astype(np.float32), capture.visible & ~saturated.ravel() & ~held[q]
 
     block = []
-    for q, samples in enumerate(imap(frame_samples, range(n_frames), threads, "separate: eq. 8")):
-        block.append(samples)
+    for q, frame in enumerate(imap(frame_samples, range(n_frames), threads, "separate: eq. 8")):
+        block.append(frame)
         if len(block) == FRAME_BLOCK or q == n_frames - 1:
-            columns = slice(q + 1 - len(block), q + 1)
-            rho[:, columns] = np.stack([s for s, _ in block], axis=1)
-            valid[:, columns] = np.stack([v for _, v in block], axis=1)
+            samples.put(q + 1 - len(block), block)
             block = []
-    rho.flush()
-    valid.flush()
-    return rho, valid
+    return samples
 
 
-def shading_normals(capture: RectifiedCapture, rho, valid, threads: int = 1) -> tuple[np.ndarray, ...]:
-    """The shading normals (P, 3) from eq. 8's samples ``rho`` and their validity, tile by tile on ``threads``
+def shading_normals(capture: RectifiedCapture, samples: FrameBlocks, threads: int = 1) -> tuple[np.ndarray, ...]:
+    """The shading normals (P, 3) from eq. 8's ``samples`` and their validity, tile by tile on ``threads``
     threads: robust photometric stereo on the diffuse part where it tells (:func:`facetsynth.fit.normals.
     photometric_normals`, ``diffuse``), else the highlights' where they glint (:func:`facetsynth.fit.normals.
     highlight_normals`), then the relief's common tilt removed (:func:`facetsynth.fit.normals.relief_normals`).
@@ -228,8 +262,9 @@ def shading_normals(capture: RectifiedCapture, rho, valid, threads: int = 1) -> 
 
     def normal_tile(tile: slice) -> None:
         wi, _ = light_geometry(points[tile][:, None, :], capture.lights[None])
-        b = np.asarray(rho[tile], float) * np.clip(wi[..., 2], 0.0, None)[..., None]
-        view, ok = towards(points[tile], capture.view_point), np.asarray(valid[tile])
+        rho, ok = samples.rows(tile)
+        b = np.asarray(rho, float) * np.clip(wi[..., 2], 0.0, None)[..., None]
+        view = towards(points[tile], capture.view_point)
         normals[tile], albedo[tile] = photometric_normals(b, wi, view, ok)
         glints[tile], contrast[tile] = highlight_normals(b, half_vector(wi, view[:, None, :]), ok)
 
@@ -244,28 +279,31 @@ def shading_normals(capture: RectifiedCapture, rho, valid, threads: int = 1) -> 
     return normals, albedo, diffuse
 
 
-def eq9_residuals(capture: RectifiedCapture, settings: Settings, rho, valid, normals: np.ndarray,
-                  albedo: np.ndarray, factors: Factors | None, specular_out: Path,
+def eq9_residuals(capture: RectifiedCapture, settings: Settings, samples: FrameBlocks, normals: np.ndarray,
+                  albedo: np.ndarray, factors: Factors | None, specular_out: Path, valid_out: Path,
                   threads: int = 1) -> tuple[np.ndarray, np.ndarray]:
-    """Eq. 9 tile by tile on ``threads`` threads: eq. 8's samples ``rho`` divided by the lights' ``factors``
+    """Eq. 9 tile by tile on ``threads`` threads: eq. 8's ``samples`` divided by the lights' ``factors``
     (if any), re-read in each point's shading frame (with ``settings.shading_normals``: :func:`_in_shading_frame`,
-    which also updates ``valid``), kd = pi rho_d (:func:`facetsynth.fit.separation.diffuse_level`), and the specular
-    residual rho - rho_d in half floats into ``specular_out`` (P, F, 3). Returns kd (P, 3) and which points show
-    specular signal (P,): a residual of at least SIGNAL_RATIO x the diffuse level."""
+    which also narrows their validity), kd = pi rho_d (:func:`facetsynth.fit.separation.diffuse_level`), the
+    specular residual rho - rho_d in half floats into ``specular_out`` (P, F, 3) and the validity into
+    ``valid_out`` (P, F). Returns kd (P, 3) and which points show specular signal (P,): a residual of at least
+    SIGNAL_RATIO x the diffuse level."""
     n_points, n_frames = capture.n_points, len(capture.frame_files)
     points = capture.points
     kd = np.zeros((n_points, 3))
     signal = np.zeros(n_points, bool)
     scale = np.ones((n_frames, 3)) if factors is None else factors.rgb
     residuals = np.lib.format.open_memmap(specular_out, mode="w+", dtype=HALF, shape=(n_points, n_frames, 3))
+    valid = np.lib.format.open_memmap(valid_out, mode="w+", dtype=bool, shape=(n_points, n_frames))
 
     def separate_tile(tile: slice) -> None:
-        rho_tile, ok = np.asarray(rho[tile], float) / scale[None], np.asarray(valid[tile])
+        rho_tile, ok = samples.rows(tile)
+        rho_tile = np.asarray(rho_tile, float) / scale[None]
         wi, r2 = light_geometry(points[tile][:, None, :], capture.lights[None])
         cos = np.einsum("pfk,pk->pf", wi, normals[tile])
         if settings.shading_normals:
             rho_tile, ok = _in_shading_frame(rho_tile, wi, cos, albedo[tile], ok)
-            valid[tile] = ok
+        valid[tile] = ok
         radiance = rho_tile * (np.clip(cos, 0, None) / r2)[..., None] * (capture.light_intensities * scale)[None]
         rho_d = diffuse_level(rho_tile, radiance, ok, settings.threshold, settings.lowest)
         kd[tile] = np.pi * rho_d
@@ -277,6 +315,7 @@ def eq9_residuals(capture: RectifiedCapture, settings: Settings, rho, valid, nor
 
     map_frames(separate_tile, list(tiles(n_points)), threads, "separate: eq. 9", unit="tile")
     residuals.flush()
+    valid.flush()
     return kd, signal
 
 
@@ -324,9 +363,9 @@ def fit_metrics(separated: Separated, capture: RectifiedCapture, g: dict, settin
 
 
 # ---------------------------------------------------------------------------- helpers
-def _light_factors(rho, valid, capture: RectifiedCapture, normals: np.ndarray, trusted: np.ndarray,
+def _light_factors(samples: FrameBlocks, capture: RectifiedCapture, normals: np.ndarray, trusted: np.ndarray,
                    reference: dict | None = None):
-    """The lights' RGB factors (:func:`facetsynth.fit.light_factors.estimate`) from eq. 8's samples ``rho`` (P, F, 3)
+    """The lights' RGB factors (:func:`facetsynth.fit.light_factors.estimate`) from eq. 8's ``samples``
     of evenly strided ``trusted`` points (diffuse enough to have a normal): b = rho (+z . i) against the
     diffuse shading n . i; or, with a ``reference`` box {"x": [x0, x1], "y": [y0, y1]} (metres), from the
     points in it (:func:`facetsynth.fit.light_factors.reference_region`). Only the valid samples take part
@@ -343,9 +382,9 @@ def _light_factors(rho, valid, capture: RectifiedCapture, normals: np.ndarray, t
     if index.size == 0:
         index = strided(np.flatnonzero(capture.visible), FACTOR_POINTS)
     wi, _ = light_geometry(capture.points[index][:, None, :], capture.lights[None])
-    b = np.asarray(rho[index], float) * np.clip(wi[..., 2], 0.0, None)[..., None]
+    rho, ok = samples.rows(index)
+    b = np.asarray(rho, float) * np.clip(wi[..., 2], 0.0, None)[..., None]
     shading = np.einsum("pfk,pk->pf", wi, normals[index])
-    ok = np.asarray(valid[index])
     if reference is not None:
         rgb = light_factors.reference_region(b, shading, ok, np.ones(len(index), bool))
         found = Factors(rgb=rgb, points_used=np.full(len(rgb), len(index)), spread=np.zeros(len(rgb)),
