@@ -37,8 +37,9 @@ def _number(text: str | None) -> float | None:
 def read_benchmark(path: str | Path) -> dict[str, float | None]:
     """Seconds, peak resident memory (MB), CPU seconds and MiB written of one Snakemake benchmark file
     ({'s', 'max_rss', 'cpu_time', 'io_out'}); the means over its rows (``benchmark: repeat(...)``) but for
-    max_rss, the largest. ``io_out`` is what the job's processes wrote to the disk (Linux's write_bytes, as
-    Snakemake last sampled it), files it deleted or Snakemake deleted after it (``temp()``) included."""
+    max_rss, the largest. ``io_out`` is what the job's processes wrote to the disk (Linux's write_bytes: files
+    deleted later, ``temp()`` ones too, included), as Snakemake last sampled it: every 0.5 s in a job's first
+    15 s, then every 30 s, so the writes of a long job's last seconds (up to 30) are missed: a lower bound."""
     with open(path, newline="") as f:
         rows = list(csv.DictReader(f, delimiter="\t"))
     if not rows:
