@@ -10,7 +10,7 @@ their tiles on the job's 2 threads, with nothing to join). A
 finished run is not repeated (Snakemake finds its outputs up to date), so an interrupted bench resumes.
 
 Writes results/bench/scale.csv (facetsynth.app.bench.SCALE_COLUMNS: one row per run and stage, plus stage
-"total", rectify through params; stage "read_frames", the floor of reading the merged frames once, and stage
+"total", rectify through refine; stage "read_frames", the floor of reading the merged frames once, and stage
 "write_disk", the disk's speed for writing 1 GiB, at which each stage's write_floor_s prices what it wrote) and
 scale.png (wall seconds against P and F per stage, log-log, with each stage's fitted exponent).
 

@@ -15,8 +15,8 @@ import time
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
-#: The fitting stages, capture to params: ``wall_s`` is the sum of their benchmark seconds. Capture
-#: and hdr do not depend on the preset; ``preset_s`` sums the stages that do (rectify to params).
+#: The fitting stages, capture to refine: ``wall_s`` is the sum of their benchmark seconds. Capture
+#: and hdr do not depend on the preset; ``preset_s`` sums the stages that do (rectify to refine).
 FIT_STAGES = ("capture", "hdr", "rectify", "separate", "resample", "partial_ndf", "cluster", "synthesize", "params",
               "refine")
 PRESET_STAGES = FIT_STAGES[2:]
@@ -111,7 +111,7 @@ def write_csv(rows: Iterable[dict], path: str | Path, columns: Sequence[str] = C
 
 SCALE_COLUMNS = ["points", "frames", "stage", "wall_s", "cpu_s", "max_rss_mb", "bytes_written", "io_out_mib",
                  "write_floor_s"]
-#: What a user with HDR frames pays: rectify through params (the row with stage "total").
+#: What a user with HDR frames pays: rectify through refine (the row with stage "total").
 TOTAL_STAGES = PRESET_STAGES
 
 
