@@ -165,7 +165,7 @@ def write_benchmark(path: Path, seconds: float, cpu: float, rss: float, io_out: 
 
 def test_scale_rows_join_scatter_parts_and_total_rectify_to_params(tmp_path):
     """A stage split in scatter parts (run side by side) costs its slowest part plus the join in wall time
-    and the sum in CPU time and in MiB written; 'total' sums rectify through params; bytes are the stage
+    and the sum in CPU time and in MiB written; 'total' sums rectify through refine; bytes are the stage
     folders' sizes."""
     root = tmp_path / "results/scale"
     for k, stage in enumerate(bench.FIT_STAGES):
