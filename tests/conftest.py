@@ -10,9 +10,9 @@ from pathlib import Path
 
 import pytest
 
-from facetsynth.io.pages import small_pages
+from facetsynth.io.pages import memory_defaults
 
-small_pages()   # before the test modules import numpy; the workflows the tests run inherit it
+memory_defaults()   # before the test modules import numpy; the workflows the tests run inherit it
 
 REPO = Path(__file__).resolve().parents[1]
 # The test folders mirror the package's (tests/fit/ tests facetsynth.fit, ...). A test module imports another's

@@ -12,9 +12,9 @@ from snakemake.exceptions import WorkflowError
 from snakemake.utils import validate
 
 from facetsynth.io.errors import excerpt
-from facetsynth.io.pages import small_pages
+from facetsynth.io.pages import memory_defaults
 
-small_pages()  # every job's numpy on small pages (src/facetsynth/io/pages.py)
+memory_defaults()  # every job's numpy on small pages, its freed memory reused (src/facetsynth/io/pages.py)
 
 
 def scalars(value):

@@ -2,6 +2,6 @@
 figures and the benchmarks.
 """
 
-from ..io.pages import small_pages
+from ..io.pages import memory_defaults
 
-small_pages()   # the facetsynth command's numpy, imported after this package, on small pages (io/pages.py)
+memory_defaults()   # the facetsynth command's numpy and the jobs it starts: io/pages.py
