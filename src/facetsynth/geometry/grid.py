@@ -164,7 +164,8 @@ def bilinear_stencil(t: float, p: float, n_theta: int, n_phi: int) -> tuple[int,
     t1 = min(t0 + 1, n_theta - 1)
     fp0 = np.floor(p)
     p0 = int(fp0) % n_phi
-    return t0, t1, p0, (p0 + 1) % n_phi, ft, p - fp0
+    p1 = p0 + 1 if p0 + 1 < n_phi else 0
+    return t0, t1, p0, p1, ft, p - fp0
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -172,13 +173,22 @@ def bilinear_at(table: np.ndarray, t: float, p: float, n_theta: int, n_phi: int)
     """:class:`Bilinear` for one direction, in compiled kernels: ``table`` (n_theta * n_phi,) flat, (t, p) its
     continuous cell coordinates (:func:`bilinear_stencil`)."""
     t0, t1, p0, p1, ft, fp = bilinear_stencil(t, p, n_theta, n_phi)
+    return interpolate(table, t0, t1, p0, p1, ft, fp, n_phi)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def interpolate(table: np.ndarray, t0: int, t1: int, p0: int, p1: int, ft: float, fp: float, n_phi: int) -> float:
+    """``table`` (n_theta * n_phi,) flat at a :func:`bilinear_stencil`: several tables at one direction share it."""
     return ((1 - ft) * ((1 - fp) * table[t0 * n_phi + p0] + fp * table[t0 * n_phi + p1])
             + ft * ((1 - fp) * table[t1 * n_phi + p0] + fp * table[t1 * n_phi + p1]))
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, inline="always")
 def polar_coordinates(x: float, y: float, z: float, n_theta: int, n_phi: int) -> tuple[float, float]:
-    """:meth:`DirectionGrid.coordinates` of one direction, in compiled kernels."""
+    """:meth:`DirectionGrid.coordinates` of one direction, in compiled kernels (bitwise the same: arctan2 lies
+    in [-pi, pi], where the float modulo by 2 pi adds 2 pi to a negative angle and is a compiled division)."""
     theta = np.arccos(min(max(z, 0.0), 1.0))
-    phi = np.arctan2(y, x) % (2.0 * np.pi)
+    phi = np.arctan2(y, x)
+    if phi < 0.0:
+        phi += 2.0 * np.pi
     return theta / (0.5 * np.pi / n_theta) - 0.5, phi / (2.0 * np.pi / n_phi) - 0.5
