@@ -6,7 +6,8 @@ from scipy.ndimage import binary_dilation
 
 from facetsynth.geometry.camera import Camera
 from facetsynth.geometry.plane import PlaneGrid
-from facetsynth.capture.rectify import rectified_to_camera, sample_pixels, visible_cells, warp_sample, warp_to_plane
+from facetsynth.capture.rectify import (rectified_to_camera, sample_pixels, visible_cells, warp_sample, warp_samples,
+                                       warp_to_plane)
 from facetsynth.io.errors import InputError
 
 
@@ -93,6 +94,25 @@ def test_cells_at_the_samples_edge_average_the_samples_pixels_alone(camera):
     # a cell no sample pixel reaches: 0 and not seen
     cells, seen = warp_sample(image, np.zeros_like(weight), camera, grid)
     assert not seen.any() and np.all(cells == 0)
+
+
+def test_frames_warped_together_are_each_frames_own_warp_to_the_bit(camera):
+    """rectify warps WARP_FRAMES frames in one OpenImageIO warp (their channels side by side, the sample's weight
+    once): each frame's cells and the cells that saw the sample are bitwise those of its own warp_sample, for
+    frames of 4 and 3 channels (RGB and the saturated mask, RGB alone) under the filters rectify offers."""
+    rng = np.random.default_rng(5)
+    images = [rng.random((160, 240, c)).astype(np.float32) for c in (4, 3, 4)]
+    images[2][..., 3] = rng.random((160, 240)) > 0.9                    # a saturated mask of 0 and 1
+    weight = sample_pixels(camera, 0.1, 0.1)
+    grid = PlaneGrid(0.14, 0.14, 96, 96)                                 # beyond the sample: cells that see none
+    for filtername in ("triangle", "box", "gaussian"):
+        together, seen = warp_samples(images, weight, camera, grid, filtername)
+        for image, cells in zip(images, together):
+            alone, seen_alone = warp_sample(image, weight, camera, grid, filtername)
+            assert cells.shape == (96, 96, image.shape[-1])
+            np.testing.assert_array_equal(cells, alone)
+            np.testing.assert_array_equal(seen, seen_alone)
+        assert seen.any() and not seen.all()
 
 
 def test_sample_pixels_whole_and_by_centre_in_chunks(camera):
