@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, event, given, settings
+from hypothesis import HealthCheck, event, example, given, settings
 from hypothesis import strategies as st
 
 from facetsynth.io.errors import InputError
@@ -124,6 +124,9 @@ def _corrupt(folder, corruption):
 
 @FUZZ
 @given(st.lists(CORRUPTION, min_size=1, max_size=3))
+# found by this test (session 56): a plane width beyond int64 raised numpy's TypeError, not an InputError
+@example(corruptions=[("json", ("plane_grid", "width"), -2 ** 63 - 1)])
+@example(corruptions=[("json", ("plane_grid", "height"), 10 ** 400)])
 def test_a_corrupted_model_loads_and_renders_finite_or_raises_input_error(tiny, monkeypatch, corruptions):
     monkeypatch.setenv("FACETSYNTH_MEMORY_LIMIT_GIB", SMALL_MEMORY)
     with tempfile.TemporaryDirectory() as tmp, no_hang():

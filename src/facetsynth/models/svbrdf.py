@@ -191,7 +191,11 @@ def _count(value: Any, positive_int: bool) -> bool:
         return False
     if positive_int:
         return isinstance(value, int) and 1 <= value <= MAX_GRID_CELLS
-    return bool(np.isfinite(value)) and value > 0.0
+    try:
+        number = float(value)           # a JSON integer of any size: beyond a float's range it is not a size
+    except OverflowError:
+        return False
+    return bool(np.isfinite(number)) and number > 0.0
 
 
 def model_grids(file: Path, meta: dict) -> tuple[PlaneGrid, DirectionGrid, DirectionGrid]:
