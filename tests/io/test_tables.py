@@ -45,6 +45,26 @@ def test_rows_read_back_dense_with_zeros_off_the_support(table):
         t.rows("slice")
 
 
+
+def test_sector_sums_read_from_the_support_are_numpys_sums_of_the_dense_rows_to_the_bit(table):
+    """cluster's coarse grid sums the stored partial NDFs without making their dense rows: for runs of points,
+    scattered points, repeated ones and the point with nothing stored, the sums over each ring's runs of 4, 8
+    and 32 cells equal numpy's float64 sums of the dense half-float rows, bitwise; a ring that does not split
+    is an error."""
+    folder, support, d, w = table
+    t = SupportTable(folder)
+    for channel in ("ndf", "confidence"):
+        rows = t.rows(channel)
+        for index in (np.arange(300), np.arange(40, 200), np.array([299, 0, 17, 17, 4]), np.arange(0, 300, 7)):
+            dense = rows[index]
+            for sectors in (8, 4, 1):
+                expected = dense.reshape(len(index), 8, sectors, -1).sum(axis=-1, dtype=float)
+                got = rows.sector_sums(index, sectors)
+                assert got.dtype == np.float64 and np.array_equal(got, expected), (channel, sectors)
+    assert not t.sector_sums("ndf", [17], 8).any()
+    with pytest.raises(ValueError, match="do not split into 5 sectors"):
+        t.sector_sums("ndf", [0], 5)
+
 def test_blocks_that_do_not_fit_are_errors_and_publish_nothing(tmp_path):
     with pytest.raises(ValueError, match="3 rows written of 4"):
         with support_writer(tmp_path / "short", (4, 2, 8)) as w:

@@ -40,17 +40,29 @@ def coarse(d: np.ndarray, w: np.ndarray, grid: DirectionGrid,
     D is averaged with solid-angle weights, W plainly; a grid that does not
     divide into the coarse one is returned as it is.
     """
-    if grid.n_theta % rings or grid.n_phi % (4 * rings) or grid.n_theta <= rings:
+    if not coarsens(grid, rings):
         return np.asarray(d, float), np.asarray(w, float), grid
+    n, sectors = len(d), 4 * rings
+    # sectors first (om is constant along a ring), then rings; accumulated in float64 without a float64 copy
+    d_sums, w_sums = (np.asarray(x).reshape(n, grid.n_theta, sectors, -1).sum(axis=-1, dtype=float) for x in (d, w))
+    return coarse_sums(d_sums, w_sums, grid, rings)
+
+
+def coarsens(grid: DirectionGrid, rings: int = COARSE_RINGS) -> bool:
+    """Whether :func:`coarse` averages ``grid`` onto ``rings`` x 4 ``rings`` cells (else it keeps it)."""
+    return not (grid.n_theta % rings or grid.n_phi % (4 * rings) or grid.n_theta <= rings)
+
+
+def coarse_sums(d_sums: np.ndarray, w_sums: np.ndarray, grid: DirectionGrid,
+                rings: int = COARSE_RINGS) -> tuple[np.ndarray, np.ndarray, DirectionGrid]:
+    """:func:`coarse` from the sums (N, T, 4 ``rings``) of D and W over each ring's runs of cells, float64 (what
+    :meth:`facetsynth.io.tables.SupportTable.sector_sums` reads from a stored table)."""
     bt, bp = grid.n_theta // rings, grid.n_phi // (4 * rings)
-    n = len(d)
+    n = len(d_sums)
     om = grid.solid_angles
     area = om.reshape(rings, bt, 4 * rings, bp).sum(axis=(1, 3))
-    # sectors first (om is constant along a ring), then rings; accumulated in float64 without a float64 copy
-    dc = np.asarray(d).reshape(n, grid.n_theta, 4 * rings, bp).sum(axis=-1, dtype=float) * om[:, :1]
-    dc = dc.reshape(n, rings, bt, 4 * rings).sum(axis=2) / area
-    wc = np.asarray(w).reshape(n, grid.n_theta, 4 * rings, bp).sum(axis=-1, dtype=float)
-    wc = wc.reshape(n, rings, bt, 4 * rings).sum(axis=2) / (bt * bp)
+    dc = (d_sums * om[:, :1]).reshape(n, rings, bt, 4 * rings).sum(axis=2) / area
+    wc = w_sums.reshape(n, rings, bt, 4 * rings).sum(axis=2) / (bt * bp)
     return dc, wc, DirectionGrid(rings, 4 * rings)
 
 

@@ -14,6 +14,10 @@ import numpy as np
 
 HALF = np.float16
 LARGEST = float(np.finfo(HALF).max)           # 65504
+# the float64 value of every half float's bits (uint16): compiled kernels read half floats through it (numba has
+# no float16), exactly numpy's cast
+HALF_VALUES = np.arange(1 << 16, dtype=np.uint16).view(HALF).astype(np.float64)
+HALF_VALUES.flags.writeable = False
 
 
 def as_half(values: np.ndarray) -> np.ndarray:
