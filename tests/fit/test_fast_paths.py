@@ -13,10 +13,8 @@ from facetsynth.io import tables
 from facetsynth.geometry.coverage import LightFootprint
 from facetsynth.geometry.grid import DirectionGrid
 from facetsynth.geometry.lightplane import LightTriangulation
-from facetsynth.fit import partial_ndf
-from facetsynth.fit.partial_ndf import (SHADOWING_GRID, _shadowing_kernel, projected_area_on, projected_area_table,
-                                       shadowing_area)
-from facetsynth.models import microfacet
+from facetsynth.fit.partial_ndf import (SHADOWING_GRID, _shadowing_area, _shadowing_kernel, projected_area_on,
+                                       projected_area_table)
 
 from test_stages import one_material, rig_lights, write_rectified
 from test_sampling_invariance import paper_lights
@@ -24,57 +22,18 @@ from test_sampling_invariance import paper_lights
 
 @pytest.mark.parametrize("grid", [DirectionGrid(16, 64), DirectionGrid(24, 96), DirectionGrid(32, 128),
                                   DirectionGrid(12, 48)])
-def test_shadowing_area_by_sectors_is_eq5_with_each_cell_at_its_sectors_azimuth(grid):
-    """A(k) of eq. 5 at the shadowing grid's directions for partial NDFs that are 0 on half the cells. Grids
-    with n_phi a multiple of 32: the sector sums' circular correlation equals, to 1e-12 of its largest value,
-    the dense integral sum max(h' . k, 0) D(h) dw with each cell's h' at its 32-sector's centre azimuth (the
-    midpoint rule of :func:`_shadowing_kernel`). Any other grid (12 x 48): the cell-by-cell integral itself.
-    The normalisation is the integral of (n . h) D; an all-zero NDF stays all zero; ``rows`` picks points."""
+def test_shadowing_area_by_fft_equals_the_dense_integral(grid):
+    """A(k) of eq. 5 at the shadowing grid's directions: the circular correlation along phi (grids with
+    n_phi a multiple of 32) and the dense product (any other grid, here 12 x 48) give the integral
+    sum max(h . k, 0) D(h) dw to 1e-12 of its largest value, for partial NDFs that are 0 on half the cells."""
     rng = np.random.default_rng(3)
     d = rng.random((6,) + grid.shape) * (rng.random((6,) + grid.shape) > 0.5)
-    d[0] = 0.0
-    k = SHADOWING_GRID.directions.reshape(-1, 3)
-    sectored = _shadowing_kernel(grid) is not None
-    assert sectored == (grid.n_phi % 32 == 0)
-    h = grid.directions
-    if sectored:
-        m = grid.n_phi // 32
-        centre = (np.arange(grid.n_phi) // m + 0.5) * 2 * np.pi / 32
-        st = np.sin(grid.theta)[:, None]
-        h = np.stack(np.broadcast_arrays(st * np.cos(centre), st * np.sin(centre), np.cos(grid.theta)[:, None]), -1)
-    kernel = np.clip(h.reshape(-1, 3) @ k.T, 0.0, None) * grid.solid_angles.reshape(-1, 1)
-    reference = d.reshape(6, -1) @ kernel
-    rows = np.array([5, 0, 2])
-    area, norm = shadowing_area(d, grid, rows)
-    assert np.abs(area - reference[rows]).max() <= 1e-12 * np.abs(reference).max()
-    np.testing.assert_allclose(norm, grid.integrate(d * grid.directions[..., 2])[rows], rtol=1e-12)
-    assert np.all(area[1] == 0.0) or np.abs(area[1]).max() < 1e-15
-
-
-def test_shadowing_by_sectors_stays_within_a_thousandth_of_the_cell_by_cell_integral():
-    """The midpoint rule over 11.25 deg sectors against the dense integral on smooth NDFs: anisotropic GGX
-    lobes at turned frames on the paper-scale grid (40 x 160, the paper-scale scene's), cut to a single view's
-    domain of eq. 10. On the shadowing rings eq. 11 reads (i(h) and o within the 80 deg grazing limit: ring
-    centres up to 81.6 deg), A(k) of the normalised D within 1.5e-3 of itself (measured 1.1e-3, growing
-    towards the horizon: 7e-3 on the last ring, at 87.2 deg, which the fit does not read) and S of eq. 5
-    (constrained, as the fit takes it) within 1.5e-3 (measured 7.6e-4)."""
-    grid = DirectionGrid(40, 160)
-    d = np.stack([microfacet.ndf(grid.directions, au, av, phi) for au, av, phi in
-                  ((0.1, 0.3, 0.0), (0.15, 0.4, 1.2), (0.25, 0.25, 0.0), (0.05, 0.2, 2.5), (0.4, 0.6, 0.4))])
-    d = np.where(grid.directions[..., 2] > np.cos(np.radians(50)), d, 0.0)              # half vectors of one view
-    k = SHADOWING_GRID.directions.reshape(-1, 3)
-    norm = grid.integrate(d * grid.directions[..., 2])[:, None]
-    dense = (projected_area_table(d, grid, k) / norm).reshape((-1,) + SHADOWING_GRID.shape)
-    area, sector_norm = shadowing_area(d, grid)
-    area = (area / sector_norm[:, None]).reshape(dense.shape)
-    read = np.degrees(SHADOWING_GRID.theta) < 82.0
-    error = np.abs(area / dense - 1)[:, read]
-    print(f"A(k) by sectors against cell by cell: {error.max():.1e} at most")
-    assert error.max() <= 1.5e-3
-    s_dense = np.clip(k[:, 2].reshape(SHADOWING_GRID.shape) / dense, 0.0, 1e3).min(axis=-1)
-    s_sector = partial_ndf.shadowing_table(d, grid, "constrained")[..., 0]
-    print(f"S by sectors against cell by cell: {np.abs(s_sector / s_dense - 1)[:, read].max():.1e} at most")
-    np.testing.assert_allclose(s_sector[:, read], s_dense[:, read], rtol=1.5e-3)
+    d[0] = 0.0                                                       # an all-zero NDF stays all zero
+    dense = projected_area_table(d, grid, SHADOWING_GRID.directions.reshape(-1, 3))
+    fast = _shadowing_area(d, grid)
+    assert _shadowing_kernel(grid)[0] == ("dense" if grid.n_phi % 32 else "fft")
+    assert np.abs(fast - dense).max() <= 1e-12 * np.abs(dense).max()
+    assert np.all(fast[0] == 0.0) or np.abs(fast[0]).max() < 1e-15
 
 
 def test_the_kernel_made_once_gives_the_same_areas_to_the_bit():

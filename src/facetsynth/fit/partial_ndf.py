@@ -72,64 +72,44 @@ def _projected_area(ndf: np.ndarray, kernel: np.ndarray) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=8)
-def _shadowing_kernel(grid: DirectionGrid) -> np.ndarray | None:
-    """How :func:`shadowing_area` integrates eq. 5 on ``grid``, made once per grid: the spectrum (T, Ts, Fs/2 + 1)
-    of the kernel that turns D's sector sums into A(k) at SHADOWING_GRID's directions, where SHADOWING_GRID's
-    Fs sectors fall every m-th of the grid's (n_phi = m x 32: every grid
-    :func:`facetsynth.fit.sharpness.grid_resolution` makes); None for any other grid, which takes the dense
-    product with :func:`area_kernel` (:func:`projected_area_on`'s, made once there).
+def _shadowing_kernel(grid: DirectionGrid) -> tuple[str, np.ndarray | None]:
+    """How :func:`shadowing_table` integrates eq. 5 on ``grid``, computed once per grid.
 
-    Eq. 5 by sectors: the m cells of one of SHADOWING_GRID's sectors share one azimuth, the sector's centre.
-    max(h . k, 0) then depends on the azimuths of h and k only through the difference of their sectors, so for
-    each pair of rings (h's, k's) A(k) is a circular correlation of D's sector sums along phi, by FFT:
-    O(T Ts Fs log Fs) per point against O(T F Ts Fs) for the dense product. It is eq. 5 by the midpoint rule
-    over sectors of 11.25 deg; max(h . k, 0) is smooth there but at h . k = 0. On the partial NDFs of the
-    paper-scale scene (40 x 160 cells) the fitted D moves by 1.4e-4 of itself (median, 5e-4 at most) against the
-    cell-by-cell integral: below the iteration's own tolerance (1e-3); docs/decisions.md "Eq. 5 by sectors"."""
+    max(h . k, 0) depends on the azimuths of h and k only through their difference, so for each pair
+    of rings (h's, k's) A(k) is a circular correlation along phi: ("fft", the kernel's spectrum (T, Ts,
+    F/2 + 1)) when SHADOWING_GRID's sectors fall every m-th of the grid's (n_phi = m x 32: every grid
+    :func:`facetsynth.fit.sharpness.grid_resolution` makes), O(T Ts F log F) per point against O(T F Ts Fs)
+    for the product with :func:`area_kernel`, which any other grid uses ("dense", None: the kernel is
+    :func:`projected_area_on`'s, made once there)."""
     if grid.n_phi % SHADOWING_GRID.n_phi:
-        return None
+        return "dense", None
+    m = grid.n_phi // SHADOWING_GRID.n_phi
+    lag = (np.arange(grid.n_phi) - (m - 1) / 2) * grid.d_phi         # phi_h - phi_k for h's sector j m + lag
     st, ct = np.sin(grid.theta)[:, None, None], np.cos(grid.theta)[:, None, None]
     sk, ck = np.sin(SHADOWING_GRID.theta)[None, :, None], np.cos(SHADOWING_GRID.theta)[None, :, None]
-    lag = np.arange(SHADOWING_GRID.n_phi) * SHADOWING_GRID.d_phi                  # phi_h - phi_k by sectors
     kernel = np.clip(st * sk * np.cos(lag) + ct * ck, 0.0, None) * grid.solid_angles[:, :1, None]
-    spectrum = np.conj(np.fft.rfft(kernel, axis=-1)).transpose(2, 0, 1)            # (f, T, Ts)
-    spectrum.flags.writeable = False
-    return spectrum
+    return "fft", np.conj(np.fft.rfft(kernel, axis=-1))
 
 
-def shadowing_area(ndf: np.ndarray, grid: DirectionGrid, rows: np.ndarray | None = None
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """A(k) of eq. 5 (R, Ts*Fs) at SHADOWING_GRID's directions and the normalisation integral of (n . h) D (R,)
-    of the NDFs ``ndf`` (P, T, F) or (P, T*F) at ``rows`` (all: None), unnormalised: A(k) of the normalised D is
-    A / norm. By sectors where the grid allows (:func:`_shadowing_kernel`), else :func:`projected_area_on`."""
-    flat = ndf.reshape(len(ndf), -1)
-    rows = np.arange(len(ndf)) if rows is None else rows
-    spectrum = _shadowing_kernel(grid)
-    ring_cos = grid.solid_angles[:, 0] * grid.directions[:, 0, 2]
-    if spectrum is None:
-        table = flat[rows].reshape((-1,) + grid.shape)
-        return projected_area_on(table, grid, SHADOWING_GRID), table.sum(axis=-1) @ ring_cos
-    sums = _sector_sums(flat, rows, grid.n_theta, grid.n_phi, SHADOWING_GRID.n_phi)      # (R, T, Fs)
-    correlated = np.matmul(scipy.fft.rfft(sums, axis=-1).transpose(2, 0, 1), spectrum)   # (f, R, Ts)
-    area = scipy.fft.irfft(correlated, n=SHADOWING_GRID.n_phi, axis=0).transpose(1, 2, 0)
-    return area.reshape(len(rows), -1), sums.sum(axis=-1) @ ring_cos
+def _shadowing_area(ndf: np.ndarray, grid: DirectionGrid) -> np.ndarray:
+    """A(k) of eq. 5 (P, Ts*Fs) at SHADOWING_GRID's directions for NDFs (P, T, F), as
+    :func:`projected_area_table` (the method: :func:`_shadowing_kernel`)."""
+    method, kernel = _shadowing_kernel(grid)
+    if method == "dense":
+        return projected_area_on(ndf, grid, SHADOWING_GRID)
+    spectrum = scipy.fft.rfft(ndf, axis=-1).transpose(2, 0, 1)                       # (f, P, T)
+    summed = np.matmul(spectrum, kernel.transpose(2, 0, 1))                          # (f, P, Ts): sum over rings
+    return _every_mth_lag(summed, grid.n_phi, grid.n_phi // SHADOWING_GRID.n_phi).transpose(1, 2, 0).reshape(
+        len(ndf), -1)
 
 
-@numba.njit(cache=True, nogil=True)
-def _sector_sums(d: np.ndarray, rows: np.ndarray, n_theta: int, n_phi: int, n_sectors: int) -> np.ndarray:
-    """Sums (R, T, n_sectors) of D over each ring's runs of n_phi / n_sectors cells, for the points ``rows``
-    of d (P, T*F): one pass, no copy of the rows."""
-    m = n_phi // n_sectors
-    sums = np.zeros((rows.size, n_theta, n_sectors))
-    for r in range(rows.size):
-        row = d[rows[r]]
-        for t in range(n_theta):
-            for j in range(n_sectors):
-                total = 0.0
-                for c in range(t * n_phi + j * m, t * n_phi + (j + 1) * m):
-                    total += row[c]
-                sums[r, t, j] = total
-    return sums
+def _every_mth_lag(spectrum: np.ndarray, n: int, m: int) -> np.ndarray:
+    """irfft(spectrum, n, axis=0)[::m]: the inverse transform at every m-th lag alone, as the n/m-point transform
+    of the spectrum folded onto n/m bins (sampling every m-th lag aliases the bins k, k + n/m, ...); ``spectrum``
+    (n/2 + 1, ...) of a real signal of even length n, m dividing n/2."""
+    full = np.concatenate([spectrum, np.conj(spectrum[-2:0:-1])])                  # all n bins
+    folded = full.reshape((m, n // m) + full.shape[1:]).sum(axis=0)
+    return scipy.fft.irfft(folded[: n // m // 2 + 1], n=n // m, axis=0) / m
 
 
 SHADOWING_METHODS = ("constrained", "unconstrained", "clipped")
@@ -143,9 +123,8 @@ def shadowing_method(method: bool | str) -> str:
     return name
 
 
-def shadowing_table(ndf: np.ndarray, grid: DirectionGrid, constrained: bool | str,
-                    rows: np.ndarray | None = None) -> np.ndarray:
-    """S(k) on SHADOWING_GRID (R, Ts, Fs) from partial NDFs (P, T, F) or (P, T*F), at ``rows`` (all: None) (eq. 5).
+def shadowing_table(ndf: np.ndarray, grid: DirectionGrid, constrained: bool | str) -> np.ndarray:
+    """S(k) on SHADOWING_GRID (P, Ts, Fs) from a partial NDF (eq. 5).
 
     D is normalised to integral of (n . h) D = 1 over its cells. The method
     (``constrained``, :func:`shadowing_method`): "constrained" (True), S at
@@ -159,8 +138,9 @@ def shadowing_table(ndf: np.ndarray, grid: DirectionGrid, constrained: bool | st
     """
     method = shadowing_method(constrained)
     k = SHADOWING_GRID.directions.reshape(-1, 3)
-    area, norm = shadowing_area(ndf, grid, rows)
-    area = np.divide(area, norm[:, None], out=np.zeros_like(area), where=norm[:, None] > 0)
+    norm = grid.integrate(ndf * grid.directions[..., 2])
+    normalised = np.divide(ndf, norm[:, None, None], out=np.zeros_like(ndf), where=norm[:, None, None] > 0)
+    area = _shadowing_area(normalised, grid)
     # A full normalised NDF gives S <= 1. A partial one overestimates S where it
     # misses part of eq. 5's domain: that is the bias of the unconstrained method
     # (sec. 5.1), kept unclipped; the cap only keeps the numbers finite.
@@ -261,7 +241,7 @@ def iterate(numerator: np.ndarray, w: np.ndarray, i_coordinates: tuple[np.ndarra
         rows = np.flatnonzero(active)                                  # converged points keep their D
         if rows.size == 0:
             break
-        s_table = shadowing_table(flat, grid, constrained, rows)       # eq. 5 from the current D
+        s_table = shadowing_table(d[rows], grid, constrained)          # eq. 5 from the current D
         s_at_o = SHADOWING_GRID.lookup(s_table, o[rows, None, :])[:, 0]
         change = _eq11_update(flat, numerator, rows, s_table.reshape(rows.size, -1), s_t, s_p, s_at_o,
                               *SHADOWING_GRID.shape)
