@@ -51,15 +51,16 @@ def test_the_commands_jobs_reuse_freed_memory_unless_the_user_tunes_malloc(given
     assert out.stdout.strip() == expected
 
 
-@pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="glibc's malloc tunables")
+@pytest.mark.skipif(platform.libc_ver()[0] != "glibc",
+                    reason="needs glibc: GLIBC_TUNABLES sets its malloc (musl's and macOS's ignore it)")
 def test_a_freed_table_is_refilled_without_fresh_pages():
     """The settings take effect in a started job. With glibc's defaults the 10 refills of four 16 MiB tables
     fault in most of their 163840 fresh pages (4 KiB): the threshold rises to a freed table's size, but the
     heap's free top beyond twice that (32 MiB) goes back to the kernel; with the heap kept, none."""
     faults = {}
     for name, tunables in (("default", None), ("kept", MALLOC)):
-        out = subprocess.run([sys.executable, "-c", REFILL], env=environment(GLIBC_TUNABLES=tunables, NUMPY_MADVISE_HUGEPAGE="0"),
-                             capture_output=True, text=True, check=True)
+        env = environment(GLIBC_TUNABLES=tunables, NUMPY_MADVISE_HUGEPAGE="0")
+        out = subprocess.run([sys.executable, "-c", REFILL], env=env, capture_output=True, text=True, check=True)
         faults[name] = int(out.stdout)
     assert faults["kept"] < 100 and faults["default"] > 10 * 4 * 4096 / 2, faults
 

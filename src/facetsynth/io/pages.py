@@ -5,8 +5,8 @@ are set in the environment of the process that starts the others: the
 Snakemake process whose jobs inherit it, the ``facetsynth`` command, the test
 suite. On the project's 2-core virtual machine the first touch of a fresh page
 is slow, and the stages allocate their per-tile tables again for every tile
-(docs/speed.md, "Huge pages" and "Freed memory kept"). Neither changes a
-number: the outputs are bitwise the same.
+(docs/speed.md, "Huge pages"; docs/decisions.md, "Freed memory kept for
+reuse"). Neither changes a number: the outputs are bitwise the same.
 
 - numpy asks Linux for transparent huge pages (``madvise(MADV_HUGEPAGE)``) on
   every large array, on kernels >= 4.6, unless ``NUMPY_MADVISE_HUGEPAGE`` says

@@ -67,10 +67,14 @@ class SupportTable:
 
     def _bits(self, rows: np.ndarray) -> np.ndarray:
         """The support of the points ``rows`` (point numbers), bool (n, T F)."""
+        return np.unpackbits(self._packed(rows), axis=1, count=self.cells).astype(bool)
+
+    def _packed(self, rows: np.ndarray) -> np.ndarray:
+        """The packed support (``mask.npy``'s rows) of the points ``rows``, read in one stretch for a run."""
         mask = np.load(self.folder / "mask.npy", mmap_mode="r")
-        bits = np.unpackbits(np.array(mask[_as_run(rows) or rows]), axis=1, count=self.cells).astype(bool)
+        packed = np.array(mask[_as_run(rows) or rows])
         del mask
-        return bits
+        return packed
 
     def _dense(self, channel: str, index, support: np.ndarray | None = None) -> np.ndarray:
         """Dense rows of ``channel``; ``support``: the points' support when the caller has read it already."""
@@ -88,7 +92,6 @@ class SupportTable:
         out = out.reshape((len(rows),) + self.shape[1:])
         return out[0] if scalar else out
 
-
     def sector_sums(self, channel: str, index, sectors: int) -> np.ndarray:
         """Sums (n, T, ``sectors``) in float64 of ``channel`` over each ring's runs of F / ``sectors`` cells, at the
         points ``index`` (an integer array), read straight from the stored support: bitwise
@@ -99,13 +102,10 @@ class SupportTable:
         if n_phi % sectors:
             raise ValueError(f"{self.folder}: {n_phi} cells a ring do not split into {sectors} sectors")
         rows = np.asarray(index, np.intp)
-        mask = np.load(self.folder / "mask.npy", mmap_mode="r")
         values = np.load(self.folder / f"{channel}.npy", mmap_mode="r")
-        run = _as_run(rows)
-        bits = np.array(mask[run or rows])
-        sums = _support_sector_sums(bits, np.asarray(values).view(np.uint16), self.offsets[rows], HALF_VALUES,
-                                    n_theta, n_phi, sectors)
-        del mask, values
+        sums = _support_sector_sums(self._packed(rows), np.asarray(values).view(np.uint16), self.offsets[rows],
+                                    HALF_VALUES, n_theta, n_phi, sectors)
+        del values
         return sums
 
 

@@ -314,15 +314,18 @@ def fit_metrics(points: Points, fitted: Fit, settings: Settings) -> dict:
 def coarse_points(d_all, w_all, rows: np.ndarray, grid: DirectionGrid, tile: int = 4096, threads: int = 1):
     """:func:`facetsynth.fit.cluster.coarse` of the points ``rows`` of the memory-mapped (P, T, F) tables, a tile
     at a time on ``threads`` threads: memory holds the coarse tables (16 x smaller on the demo's grid), never
-    the full ones. Support tables are summed where they are stored (their ``sector_sums``), bitwise the same."""
+    the full ones. ``d_all``, ``w_all``: support table channels (:class:`facetsynth.io.tables.SupportRows`), summed
+    where they are stored (``sector_sums``: bitwise numpy's sums of the dense rows) when the grid coarsens."""
     sectors = 4 * cluster.COARSE_RINGS
 
-    def coarse(t: slice):
-        if cluster.coarsens(grid) and all(hasattr(x, "sector_sums") for x in (d_all, w_all)):   # support tables
-            return cluster.coarse_sums(d_all.sector_sums(rows[t], sectors), w_all.sector_sums(rows[t], sectors), grid)
+    def summed(t: slice):
+        return cluster.coarse_sums(d_all.sector_sums(rows[t], sectors), w_all.sector_sums(rows[t], sectors), grid)
+
+    def dense(t: slice):
         return cluster.coarse(d_all[rows[t]], w_all[rows[t]], grid)
 
-    blocks = list(imap(coarse, list(tiles(rows.size, tile)), threads, "cluster: coarse tables", unit="tile"))
+    blocks = list(imap(summed if cluster.coarsens(grid) else dense, list(tiles(rows.size, tile)), threads,
+                       "cluster: coarse tables", unit="tile"))
     return np.concatenate([b[0] for b in blocks]), np.concatenate([b[1] for b in blocks]), blocks[0][2]
 
 
