@@ -6,9 +6,14 @@ from scipy.ndimage import binary_dilation
 
 from facetsynth.geometry.camera import Camera
 from facetsynth.geometry.plane import PlaneGrid
-from facetsynth.capture.rectify import (rectified_to_camera, sample_pixels, visible_cells, warp_sample, warp_samples,
-                                       warp_to_plane)
+from facetsynth.capture.rectify import rectified_to_camera, sample_pixels, visible_cells, warp_samples, warp_to_plane
 from facetsynth.io.errors import InputError
+
+
+def warp_sample(image, weight, camera, grid, filtername="triangle"):
+    """warp_samples of one image: its cells and the cells that saw the sample."""
+    (cells,), seen = warp_samples([image], weight, camera, grid, filtername)
+    return cells, seen
 
 
 @pytest.fixture
@@ -98,7 +103,7 @@ def test_cells_at_the_samples_edge_average_the_samples_pixels_alone(camera):
 
 def test_frames_warped_together_are_each_frames_own_warp_to_the_bit(camera):
     """rectify warps WARP_FRAMES frames in one OpenImageIO warp (their channels side by side, the sample's weight
-    once): each frame's cells and the cells that saw the sample are bitwise those of its own warp_sample, for
+    once): each frame's cells and the cells that saw the sample are bitwise those of its own warp, for
     frames of 4 and 3 channels (RGB and the saturated mask, RGB alone) under the filters rectify offers."""
     rng = np.random.default_rng(5)
     images = [rng.random((160, 240, c)).astype(np.float32) for c in (4, 3, 4)]

@@ -82,23 +82,18 @@ def on_sample(camera: Camera, xy: np.ndarray, width: float, height: float, slack
         return ahead & (np.abs(xy[..., 0]) <= width / 2 + slack) & (np.abs(xy[..., 1]) <= height / 2 + slack)
 
 
-def warp_sample(image: np.ndarray, weight: np.ndarray, camera: Camera, grid: PlaneGrid,
-                filtername: str = "triangle") -> tuple[np.ndarray, np.ndarray]:
+def warp_samples(images: list[np.ndarray], weight: np.ndarray, camera: Camera, grid: PlaneGrid,
+                 filtername: str = "triangle") -> tuple[list[np.ndarray], np.ndarray]:
     """:func:`warp_to_plane` of the pixels that see the sample alone (``weight`` (H, W), :func:`sample_pixels`),
     renormalised (normalised convolution: the warp of ``image * weight`` over that of ``weight``): a cell at
     the sample's or the image's edge is the filter's average of the sample's pixels, not of the sample, the
-    background and the black beyond the image. Returns the cells (rows, cols, C) and whether each saw any
-    such pixel (rows, cols) (cells that did not are 0)."""
-    (cells,), seen = warp_samples([image], weight, camera, grid, filtername)
-    return cells, seen
+    background and the black beyond the image. Returns each image's cells (rows, cols, C) and whether each cell
+    saw any such pixel (rows, cols) (cells that did not are 0).
 
-
-def warp_samples(images: list[np.ndarray], weight: np.ndarray, camera: Camera, grid: PlaneGrid,
-                 filtername: str = "triangle") -> tuple[list[np.ndarray], np.ndarray]:
-    """:func:`warp_sample` of several images (H, W, C) seen through one camera, in one warp: OpenImageIO's
-    warp spends its time on each cell's filter weights, which every channel shares (at 256^2 cells, 29 ms for
-    one frame's 5 channels, 75 ms for 8 frames' 33), and computes each channel alone, so every image's cells
-    are bitwise those of its own warp. Returns each image's cells and whether each cell saw the sample."""
+    Several images (H, W, C) seen through one camera go in one warp: OpenImageIO's warp spends its time on each
+    cell's filter weights, which every channel shares (at 256^2 cells, 29 ms for one frame's 5 channels, 75 ms
+    for 8 frames' 33), and computes each channel alone, so every image's cells are bitwise those of its own
+    warp."""
     w = np.asarray(weight, np.float32)[..., None]
     warped = warp_to_plane(np.dstack([image * w for image in images] + [w]), camera, grid, filtername)
     cover = warped[..., -1:]
