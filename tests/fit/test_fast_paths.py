@@ -36,6 +36,25 @@ def test_shadowing_area_by_fft_equals_the_dense_integral(grid):
     assert np.all(fast[0] == 0.0) or np.abs(fast[0]).max() < 1e-15
 
 
+def test_the_folded_spectrum_is_numpys_fold_of_every_bin_to_the_bit():
+    """_every_mth_lag folds only the bins its n/m-point inverse reads, in one compiled pass: bitwise the
+    inverse of numpy's fold of all n bins (the spectrum mirrored to n bins, summed over the m aliases), and
+    the every-m-th lag of the full inverse to 1e-12, for the grids' ratios m = 2, 3, 5 and a random spectrum
+    of a real signal that is 0 on half its samples."""
+    import scipy.fft
+    from facetsynth.fit.partial_ndf import _every_mth_lag
+    rng = np.random.default_rng(5)
+    for n, m in [(64, 2), (96, 3), (160, 5)]:
+        x = rng.random((7, 4, n)) * (rng.random((7, 4, n)) > 0.5)
+        spectrum = np.ascontiguousarray(scipy.fft.rfft(x, axis=-1).transpose(2, 0, 1))      # (n/2 + 1, 7, 4)
+        full = np.concatenate([spectrum, np.conj(spectrum[-2:0:-1])])
+        folded = full.reshape((m, n // m) + full.shape[1:]).sum(axis=0)
+        reference = scipy.fft.irfft(folded[: n // m // 2 + 1], n=n // m, axis=0) / m
+        np.testing.assert_array_equal(_every_mth_lag(spectrum, n, m), reference)
+        every_mth = scipy.fft.irfft(spectrum, n=n, axis=0)[::m]
+        assert np.abs(_every_mth_lag(spectrum, n, m) - every_mth).max() <= 1e-12 * np.abs(every_mth).max()
+
+
 def test_the_kernel_made_once_gives_the_same_areas_to_the_bit():
     """projected_area_on (refine renormalises every stretch it tries) reuses one read-only kernel per pair of
     grids, and its A(k) is projected_area_table's at the shadowing grid's directions, bitwise, on a second call

@@ -106,10 +106,28 @@ def _shadowing_area(ndf: np.ndarray, grid: DirectionGrid) -> np.ndarray:
 def _every_mth_lag(spectrum: np.ndarray, n: int, m: int) -> np.ndarray:
     """irfft(spectrum, n, axis=0)[::m]: the inverse transform at every m-th lag alone, as the n/m-point transform
     of the spectrum folded onto n/m bins (sampling every m-th lag aliases the bins k, k + n/m, ...); ``spectrum``
-    (n/2 + 1, ...) of a real signal of even length n, m dividing n/2."""
-    full = np.concatenate([spectrum, np.conj(spectrum[-2:0:-1])])                  # all n bins
-    folded = full.reshape((m, n // m) + full.shape[1:]).sum(axis=0)
-    return scipy.fft.irfft(folded[: n // m // 2 + 1], n=n // m, axis=0) / m
+    (n/2 + 1, P, K) of a real signal of even length n, m dividing n/2."""
+    return scipy.fft.irfft(_folded_bins(spectrum, n, m), n=n // m, axis=0) / m
+
+
+@numba.njit(cache=True, nogil=True)
+def _folded_bins(spectrum: np.ndarray, n: int, m: int) -> np.ndarray:
+    """The bins 0 .. n/m/2 of the n bins of ``spectrum`` (n/2 + 1, P, K) folded onto n/m: bin k sums the bins
+    k + j n/m, j = 0 .. m - 1, in that order, a bin b beyond n/2 read as conj(spectrum[n - b]) (the spectrum
+    of a real signal). Only the bins the n/m-point inverse reads, in one pass: bitwise numpy's sum over the
+    whole folded spectrum (which adds the m bins in the same order), without making it."""
+    period = n // m
+    out = np.empty((period // 2 + 1,) + spectrum.shape[1:], spectrum.dtype)
+    for k in range(out.shape[0]):
+        for j in range(m):
+            b = k + j * period
+            mirrored = b > n // 2
+            source = spectrum[n - b] if mirrored else spectrum[b]
+            for p in range(spectrum.shape[1]):
+                for q in range(spectrum.shape[2]):
+                    value = np.conj(source[p, q]) if mirrored else source[p, q]
+                    out[k, p, q] = value if j == 0 else out[k, p, q] + value
+    return out
 
 
 SHADOWING_METHODS = ("constrained", "unconstrained", "clipped")
@@ -241,7 +259,7 @@ def iterate(numerator: np.ndarray, w: np.ndarray, i_coordinates: tuple[np.ndarra
         rows = np.flatnonzero(active)                                  # converged points keep their D
         if rows.size == 0:
             break
-        s_table = shadowing_table(d[rows], grid, constrained)          # eq. 5 from the current D
+        s_table = shadowing_table(d if rows.size == n_points else d[rows], grid, constrained)   # eq. 5 from D
         s_at_o = SHADOWING_GRID.lookup(s_table, o[rows, None, :])[:, 0]
         change = _eq11_update(flat, numerator, rows, s_table.reshape(rows.size, -1), s_t, s_p, s_at_o,
                               *SHADOWING_GRID.shape)
