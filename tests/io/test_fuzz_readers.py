@@ -293,7 +293,8 @@ def rgl_fields(draw):
     def field(*shape):
         if ramp:
             return np.arange(1, np.prod(shape) + 1, dtype=np.float32).reshape(shape)
-        return np.full(shape, value, dtype=np.float32)
+        with np.errstate(over="ignore"):   # a float64 pattern beyond float32's range is stored as inf, on purpose
+            return np.full(shape, value, dtype=np.float32)
     return {"theta_i": np.linspace(0, 1.5, nth, dtype=np.float32), "phi_i": np.linspace(0, 6.28, nphi, dtype=np.float32),
             "ndf": field(draw(size), draw(size)), "sigma": field(draw(size), draw(size)),
             "vndf": field(nphi, nth, draw(size), draw(size)), "rgb": field(nphi, nth, 3, draw(size), draw(size)),
