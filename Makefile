@@ -4,9 +4,9 @@
 #   make lint  - ruff (src, tests, scripts), snakefmt --check (Snakefile, rules), snakemake --lint by text (.ci/lint)
 #   make test-scenes - the slow whole-workflow tests: the scenes of issue 13 at native resolution, issue 4's
 #                synthesis scenes, the demo with its report and exports, the Mitsuba copper at 480 lights
-#                (about 27 min; CI runs them after make test)
-#   make test-cluster - two samples through a single-node SLURM cluster on localhost against a local run (about
-#                3 min; installs Debian's slurmctld, slurmd, slurm-client and munge when missing: needs root)
+#                (20-24 min on 2 cores; CI runs them after make test, the cluster test beside them)
+#   make test-cluster - two samples through a single-node SLURM cluster on localhost against a local run (4-5 min
+#                alone; installs Debian's slurmctld, slurmd, slurm-client and munge when missing: needs root)
 #   make bench - run every preset (fast, balanced, accurate) on demo, wallpaper, satin (native: 168^2) and
 #                paper-256 (the paper-scale scene and lights, 256^2 native) and write results/bench/tradeoff.csv
 #                and tradeoff.png (about 25 min on 2 cores); restrict with

@@ -1,7 +1,7 @@
 """Issue 13, done-when: fits that describe the material, not the rig, at the paper's 480 lights.
 
 Each scene is captured by the virtual rig (default noise) and run through the whole workflow; these are
-the slow tests (`make test-scenes`, about 10 min on 2 cores), run by CI after the unit suite.
+the slow tests (`make test-scenes`: 20-24 min on 2 cores in all), run by CI after the unit suite.
 
 - uniform: one GGX material (alpha 0.12) at 1360 and 480 lights: at most 8 representatives (measured 1 at
   both), per-point NDF spread at the noise level (measured 0.0: every point has the one representative).
