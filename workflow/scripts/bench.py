@@ -4,7 +4,7 @@ For every preset it runs the main Snakefile in its own working directory, result
 (links to Snakefile, workflow, config, resources, rig; its own samples.tsv), up to
 results/{scene}/validate/metrics.json of every scene, then writes results/bench/tradeoff.csv (one row
 per preset and scene: facetsynth.app.bench.COLUMNS) and results/bench/tradeoff.png (held-out PSNR against
-the fit time, capture to params, with the Pareto front). A finished run is not repeated (Snakemake
+the fit time, capture to refine, with the Pareto front). A finished run is not repeated (Snakemake
 finds its outputs up to date), so an interrupted bench resumes.
 
     python workflow/scripts/bench.py [--presets fast balanced accurate] [--scenes demo wallpaper satin]

@@ -62,7 +62,7 @@ def _json(path: Path) -> dict:
 
 def collect_row(results: str | Path, preset: str, scene: str) -> dict:
     """One row of tradeoff.csv from ``results/{scene}/`` of one preset's run: per-stage seconds,
-    ``wall_s`` (sum over FIT_STAGES; None when one is missing), ``preset_s`` (rectify to params),
+    ``wall_s`` (sum over FIT_STAGES; None when one is missing), ``preset_s`` (rectify to refine),
     ``cpu_s`` (sum of their cpu_time: less sensitive to other load on the machine than wall time),
     ``peak_mem_mb`` (max of max_rss over FIT_STAGES), and the accuracy records."""
     root = Path(results) / scene
@@ -410,9 +410,9 @@ def plot(rows: Sequence[dict], path: str | Path, title: str, presets: Sequence[s
     for preset, marker in markers.items():
         if any(r["preset"] == preset for r in rows):
             ax.plot([], [], marker, color="grey", label=preset)
-    ax.set_xlabel({"wall_s": "fit time, capture to params (s, sum of the Snakemake benchmarks)",
-                   "cpu_s": "fit CPU time, capture to params (s, sum of the benchmarks' cpu_time)",
-                   "preset_s": "fit time, rectify to params (s)"}.get(x, x))
+    ax.set_xlabel({"wall_s": "fit time, capture to refine (s, sum of the Snakemake benchmarks)",
+                   "cpu_s": "fit CPU time, capture to refine (s, sum of the benchmarks' cpu_time)",
+                   "preset_s": "fit time, rectify to refine (s)"}.get(x, x))
     ax.set_ylabel("held-out PSNR (dB)" if y == "heldout_psnr_db" else y)
     ax.set_title(title, fontsize=10)
     ax.grid(alpha=0.3)
