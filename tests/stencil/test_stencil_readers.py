@@ -1,6 +1,7 @@
 """Readers: round trips through written files, bad files, RGL against Mitsuba 3."""
 
 import struct
+import warnings
 
 import numpy as np
 import pytest
@@ -83,6 +84,36 @@ def test_tensor_file_round_trip_and_errors(tmp_path):
     p.write_bytes(b"not_a_tensor" + raw[12:])
     with pytest.raises(InputError, match="magic"):
         readers.read_tensor_file(p)
+
+
+@pytest.mark.parametrize("shape", [(2**63 + 1, 2), (2**32, 2**32)])
+def test_tensor_file_shape_beyond_int64_is_truncation_not_a_wrapped_size(tmp_path, shape):
+    """A damaged header's shape whose element count passes 2^63 (or wraps to 0 in int64) is measured exactly:
+    the field needs more bytes than the file has, said as such, and numpy warns of nothing."""
+    p = tmp_path / "t.bsdf"
+    readers.write_tensor_file(p, {"a": np.zeros((2, 3), np.float32)})
+    raw = bytearray(p.read_bytes())
+    struct.pack_into("<2Q", raw, 32, *shape)     # field "a": its shape after magic, version, count, name, dtype, offset
+    p.write_bytes(bytes(raw))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(InputError, match="truncated: field 'a' needs bytes"):
+            readers.read_tensor_file(p)
+
+
+def test_rgl_signalling_nan_is_named_without_a_numpy_warning(tmp_path):
+    """A signalling NaN in an RGL table (bits a damaged file holds: the fuzz test found them) raises the invalid
+    flag when cast to float64: the reader names the field and its NaN count, and numpy warns of nothing."""
+    fields = readers.read_tensor_file(min(RGL_DIR.glob("*.bsdf"), key=lambda q: q.stat().st_size))
+    vndf = np.array(fields["vndf"], np.float32)
+    vndf.reshape(-1).view(np.uint32)[5] = 0x7F800001               # exponent all ones, quiet bit clear: sNaN
+    fields["vndf"] = vndf
+    p = tmp_path / "snan.bsdf"
+    readers.write_tensor_file(p, fields)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(InputError, match="field 'vndf': 1 NaN or Inf value"):
+            readers.read_rgl(p)
 
 
 def test_rgl_matches_mitsuba_measured():

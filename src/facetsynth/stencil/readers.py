@@ -24,6 +24,7 @@ Formats
 
 from __future__ import annotations
 
+import math
 import struct
 from pathlib import Path
 
@@ -173,7 +174,7 @@ def read_tensor_file(path):
             if code not in _DTYPES:
                 raise InputError(p, f"field {name!r}: unknown dtype code {code}")
             dt = np.dtype(_DTYPES[code])
-            nbytes = int(np.prod(shape, dtype=np.int64)) * dt.itemsize
+            nbytes = math.prod(shape) * dt.itemsize     # exact: a damaged shape's product must not wrap
             if offset + nbytes > len(raw):
                 raise InputError(p, f"truncated: field {name!r} needs bytes {offset}..{offset + nbytes}, "
                                     f"file has {len(raw)}")
@@ -308,14 +309,15 @@ class RGLBRDF:
         missing = [k for k in self.REQUIRED if k not in f]
         if missing:
             raise InputError(path, f"not an RGL RGB BRDF: missing fields {missing}")
-        self.theta_i = f["theta_i"].astype(float)
-        self.phi_i = f["phi_i"].astype(float)
-        nphi, nth = self.phi_i.size, self.theta_i.size
-        vndf, rgb = f["vndf"].astype(float), f["rgb"].astype(float)
-        if vndf.ndim != 4 or vndf.shape[:2] != (nphi, nth) or rgb.shape[:3] != (nphi, nth, 3) \
-                or rgb.ndim != 5 or f["ndf"].ndim != 2 or f["sigma"].ndim != 2:
-            raise InputError(path, f"inconsistent field shapes: vndf {vndf.shape}, rgb {rgb.shape}")
-        _check_rgl_values(path, f, vndf, rgb)
+        with np.errstate(invalid="ignore"):   # a signalling NaN raises the flag when cast: the checks name it
+            self.theta_i = f["theta_i"].astype(float)
+            self.phi_i = f["phi_i"].astype(float)
+            nphi, nth = self.phi_i.size, self.theta_i.size
+            vndf, rgb = f["vndf"].astype(float), f["rgb"].astype(float)
+            if vndf.ndim != 4 or vndf.shape[:2] != (nphi, nth) or rgb.shape[:3] != (nphi, nth, 3) \
+                    or rgb.ndim != 5 or f["ndf"].ndim != 2 or f["sigma"].ndim != 2:
+                raise InputError(path, f"inconsistent field shapes: vndf {vndf.shape}, rgb {rgb.shape}")
+            _check_rgl_values(path, f, vndf, rgb)
         self.description = bytes(f.get("description", np.zeros(0, np.uint8))).decode("utf-8", "replace")
         self.isotropic = nphi <= 2
         self.jacobian = bool(f["jacobian"][0])
