@@ -357,7 +357,7 @@ def test_the_fits_figure_scores_every_model_against_the_same_samples(extreme_run
     from facetsynth.models.svbrdf import SVBRDF
     capture = RectifiedCapture.load(extreme_run["geometry"])
     model = SVBRDF.load(extreme_run["svbrdf"])
-    spec, ok = read_npy(extreme_run["separate/specular.npy"]), read_npy(extreme_run["separate/valid.npy"])
+    spec, ok = read_npy(extreme_run["separate/specular.npy"]), capture.validity(extreme_run["separate/valid.npy"])
     before = samples_rel_l2(model, capture, spec, ok, model.kd)
     wrong = samples_rel_l2(replace(model, kd=model.kd + 0.05), capture, spec, ok, model.kd)
     a, b, _ = kd_ks(model, capture, spec, ok, Settings())

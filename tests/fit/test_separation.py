@@ -8,6 +8,7 @@ import pytest
 from facetsynth.models import microfacet
 from facetsynth.geometry.plane import PlaneGrid
 from facetsynth.fit.separation import brdf_samples, diffuse_level, specular_residual
+from facetsynth.stages.common import RectifiedCapture
 
 from test_grid import O, sph, unit
 from test_stages import eq9_truth, one_material, rig_lights, write_rectified
@@ -53,7 +54,7 @@ def test_saturated_and_nan_samples_are_invalid_and_kd_comes_from_the_rest(tmp_pa
                  separate.Outputs(kd=tmp_path / "kd.exr", specular=tmp_path / "s.npy", valid=tmp_path / "v.npy",
                                   metrics=tmp_path / "m.json"), separate.Settings(heldout_every=0))
     got = read_exr(tmp_path / "kd.exr")[0]["RGB"].reshape(-1, 3)
-    valid = np.load(tmp_path / "v.npy")
+    valid = RectifiedCapture.load(geometry).validity(tmp_path / "v.npy")[:]
     assert valid[4, 1::2].all() and not valid[4, 0::2].any() and valid[[0, 1, 2, 3, 5, 6, 7, 8]].all()
     pts = PlaneGrid(0.1, 0.1, 3, 3).points3d().reshape(-1, 3)
     lights = rig_lights(5, 5)

@@ -14,6 +14,7 @@ import numpy as np
 from facetsynth.models import microfacet
 from facetsynth.io import tables
 from facetsynth.geometry.plane import PlaneGrid
+from facetsynth.stages.common import RectifiedCapture
 
 from test_grid import unit, upper
 
@@ -102,7 +103,7 @@ def test_pipeline_hdr_and_separation(extreme_run):
     hdr = metrics_of(extreme_run["root"] / "hdr/metrics.json")
     assert hdr["saturated_pixels"] > 0 and hdr["median_rel_error"] < 1e-3
     cap, truth, interior = interior_truth(extreme_run["geometry"])
-    valid = np.load(extreme_run["separate/valid.npy"])
+    valid = RectifiedCapture.load(extreme_run["geometry"]).validity(extreme_run["separate/valid.npy"])[:]
     spec = np.load(extreme_run["separate/specular.npy"])
     kd = read_exr(extreme_run["separate/kd.exr"])[0]["RGB"].reshape(-1, 3)
     assert np.isfinite(spec).all() and (spec >= 0).all() and np.isfinite(kd).all()
@@ -300,7 +301,7 @@ def test_tiles_with_no_visible_point(tmp_path):
     expected = [eq9_truth(kd, (0.5,) * 3, rig_lights(), pt, alpha=(0.3, 0.3))
                 for pt in plane.points3d().reshape(-1, 3)[256:]]
     np.testing.assert_allclose(got[256:], expected, rtol=1e-5)
-    assert not np.load(f["separate/valid.npy"])[:256].any()
+    assert not RectifiedCapture.load(geometry).validity(f["separate/valid.npy"])[:256].any()
     for name, channel in (("resample/slice", "values"), ("partial_ndf/ndf", "ndf"), ("partial_ndf/ndf", "confidence")):
         assert np.isfinite(tables.load(f[name], channel)).all()
     labels, weights = np.load(f["cluster/labels.npy"]), np.load(f["cluster/weights.npy"])

@@ -537,6 +537,28 @@ class NpyRows:
         return rows
 
 
+class BitRows(NpyRows):
+    """A (P, F) bool table kept as bits (``numpy.packbits`` along F: a (P, ceil(F / 8)) uint8 .npy, 8 x smaller:
+    separate's sample validity, 0.31 -> 0.04 GB at 800^2 x 480), read by rows as :class:`NpyRows` reads a
+    tensor: ``rows[index]`` bool (n, F). ``count`` is F, which the packed width rounds up. A (P, F) bool .npy
+    (as facetsynth wrote it before) is read as it is. InputError names the file whose shape fits neither."""
+
+    def __init__(self, path: PathLike, count: int, rows: int | None = None, what: str = "bit table"):
+        super().__init__(path)
+        self.packed = self.dtype == np.uint8
+        width = -(-count // 8) if self.packed else count
+        if (len(self.shape) != 2 or self.dtype not in (np.uint8, np.bool_) or self.shape[1] != width
+                or rows is not None and self.shape[0] != rows):
+            raise InputError(self.path, f"{what}: a {self.dtype} tensor of shape {self.shape}, expected "
+                                        f"({rows if rows is not None else 'P'}, {-(-count // 8)}) uint8 bits "
+                                        f"or ({rows if rows is not None else 'P'}, {count}) bool")
+        self.shape, self.dtype = (self.shape[0], count), np.dtype(bool)
+
+    def __getitem__(self, index) -> np.ndarray:
+        rows = super().__getitem__(index)
+        return np.unpackbits(rows, axis=-1, count=self.shape[1]).view(bool) if self.packed else rows
+
+
 @contextlib.contextmanager
 def npy_writer(path: PathLike, dtype, shape: tuple[int, ...]) -> Iterator[Callable[[np.ndarray], None]]:
     """Write a .npy tensor of ``shape`` atomically, row blocks in order: yields ``write(block)``, which

@@ -97,7 +97,7 @@ def _fit_points(capture: RectifiedCapture, specular, valid, points: slice, max_n
     ``points.start``, so a scatter part's tiles are those of the unsplit run); defaults (ks 0, alpha 0.3)
     elsewhere. A point's samples are those valid, finite and lit from above (i.z > 0)."""
     spec = np.load(specular, mmap_mode="r")
-    ok = np.load(valid, mmap_mode="r")
+    ok = capture.validity(valid)
     view = capture.view_directions(True)
     n = points.stop - points.start
     out = {"ks": np.zeros(n), "alpha_x": np.full(n, 0.3), "alpha_y": np.full(n, 0.3), "phi": np.zeros(n),

@@ -140,7 +140,7 @@ def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threa
     t0 = time.perf_counter()
     points = load(inputs, threads)
     specular = None if inputs.specular is None else NpyRows(inputs.specular)
-    valid = None if inputs.valid is None else NpyRows(inputs.valid)
+    valid = None if inputs.valid is None else points.capture.validity(inputs.valid)
     fitted = fit(points, specular, valid, settings, threads)
     write(outputs, points, fitted)
     metrics = {**fit_metrics(points, fitted, settings), "seconds": round(time.perf_counter() - t0, 2)}
@@ -386,32 +386,31 @@ def point_turns(d_all, w_all, visible: np.ndarray, labels: np.ndarray, pooled: P
     sample (TURN_GAIN, TURN_SPREAD): for those a representative and a per-point turn replace eq. 18's
     mixture of representatives at other turns, which showed as wedges on the demo's turned copper.
     Whether a cluster turns, its spread and gain, are measured on up to POOL_MEMBERS of its members
-    (evenly strided); the turns of every member only where it does (elsewhere the turn is 0). Clusters in
-    parallel on ``threads`` threads."""
+    (evenly strided); the turns of every member only where it does (elsewhere the turn is 0). Each cluster's
+    sample, then the turning clusters' other members, in batches of ``batch`` points on ``threads`` threads
+    (at 800^2 one turning cluster holds most of the points: by clusters, one thread measured them all)."""
     n_rep = len(pooled.ndf)
     phi, gain = np.zeros(len(visible)), np.ones(len(visible))
+    members = [np.flatnonzero(labels == c) for c in range(n_rep)]
+    samples = [m[:: max(1, int(np.ceil(m.size / POOL_MEMBERS)))] for m in members]
 
-    def measure(rows: np.ndarray, c: int) -> None:
-        for start in range(0, rows.size, batch):
-            part = rows[start:start + batch]
-            d, w = np.asarray(d_all[visible[part]], float), np.asarray(w_all[visible[part]], float)
-            phi[part], gain[part] = cluster.relative_rotation(d, w, pooled.ndf[c], pooled.confidence[c], grid,
-                                                              max_shift=grid.n_phi // 4)
+    def measure(job: tuple[int, np.ndarray]) -> None:
+        c, part = job
+        d, w = np.asarray(d_all[visible[part]], float), np.asarray(w_all[visible[part]], float)
+        phi[part], gain[part] = cluster.relative_rotation(d, w, pooled.ndf[c], pooled.confidence[c], grid,
+                                                          max_shift=grid.n_phi // 4)
 
-    spread, median_gain = np.zeros(n_rep), np.ones(n_rep)
+    def batches(c: int, rows: np.ndarray) -> list[tuple[int, np.ndarray]]:
+        return [(c, rows[start:start + batch]) for start in range(0, rows.size, batch)]
 
-    def cluster_turns(c: int) -> None:
-        members = np.flatnonzero(labels == c)
-        if members.size == 0:
-            return
-        sample = members[:: max(1, int(np.ceil(members.size / POOL_MEMBERS)))]
-        measure(sample, c)
-        spread[c], median_gain[c] = float(np.std(phi[sample])), float(np.median(gain[sample]))
-        if median_gain[c] < TURN_GAIN and spread[c] > TURN_SPREAD * grid.d_phi:
-            measure(np.setdiff1d(members, sample, assume_unique=True), c)
-        else:
-            phi[sample] = 0.0
-
-    map_frames(cluster_turns, range(n_rep), threads, "cluster: turns within clusters", unit="rep")
+    map_frames(measure, [job for c in range(n_rep) for job in batches(c, samples[c])], threads,
+               "cluster: turns within clusters", unit="batch")
+    spread = np.array([float(np.std(phi[s])) if s.size else 0.0 for s in samples])
+    median_gain = np.array([float(np.median(gain[s])) if s.size else 1.0 for s in samples])
     turned = (median_gain < TURN_GAIN) & (spread > TURN_SPREAD * grid.d_phi)
+    for c in np.flatnonzero(~turned):
+        phi[samples[c]] = 0.0
+    rest = [job for c in np.flatnonzero(turned)
+            for job in batches(c, np.setdiff1d(members[c], samples[c], assume_unique=True))]
+    map_frames(measure, rest, threads, "cluster: turns of the turning clusters' points", unit="batch")
     return Turns(phi, spread, median_gain, turned)

@@ -11,7 +11,7 @@ import numpy as np
 
 from ..capture import manifest
 from ..io.errors import InputError
-from ..io.fileio import read_json
+from ..io.fileio import BitRows, read_json
 from ..fit.normals import shading_frames, to_local
 from ..geometry.coverage import LightFootprint
 from ..geometry.grid import DirectionGrid
@@ -95,6 +95,11 @@ class RectifiedCapture:
     def tilted(self) -> bool:
         """Whether any point's shading normal differs from +z."""
         return self.normals is not None and bool(np.any(self.normals[:, :2] != 0))
+
+    def validity(self, path: str | Path) -> BitRows:
+        """separate's ``valid.npy``: whether each of the points' eq. 8 samples is valid, (P, F) bool read by rows
+        (:class:`facetsynth.io.fileio.BitRows`); InputError naming the file if it is not this capture's."""
+        return BitRows(path, len(self.frame_files), self.n_points, "sample validity")
 
     def light_coverage(self, grid: DirectionGrid):
         """``coverage(points)``: (len, T, F) how well the capture's lights sampled each grid direction from

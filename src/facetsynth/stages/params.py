@@ -311,7 +311,7 @@ def load(inputs: Inputs, capture: RectifiedCapture) -> Tables:
                   kd=channels["RGB"].reshape(n, 3).astype(float),
                   colour=np.asarray(_load(inputs.colour, n, "specular colour"), float),
                   specular=_load(inputs.specular, n, "specular samples"),
-                  valid=_load(inputs.valid, n, "sample validity"),
+                  valid=capture.validity(inputs.valid),
                   rotation=None if inputs.rotation is None else np.asarray(_load(inputs.rotation, n, "rotation"),
                                                                            float))
 

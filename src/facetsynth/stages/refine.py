@@ -542,10 +542,9 @@ def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threa
     capture = RectifiedCapture.load(inputs.geometry)
     pipeline = SVBRDF.load(inputs.model)
     n = capture.n_points
-    spec, ok = read_npy(inputs.specular, mmap_mode="r"), read_npy(inputs.valid, mmap_mode="r")
-    for path, a in ((inputs.specular, spec), (inputs.valid, ok)):
-        if a.shape[0] != n:
-            raise InputError(path, f"has {a.shape[0]} rows, the rectified grid {n} points")
+    spec, ok = read_npy(inputs.specular, mmap_mode="r"), capture.validity(inputs.valid)
+    if spec.shape[0] != n:
+        raise InputError(inputs.specular, f"has {spec.shape[0]} rows, the rectified grid {n} points")
     refined, metrics = fit(pipeline, capture, spec, ok, settings, threads)
     with atomic_dir(outputs.svbrdf) as staging:
         refined.info = dict(pipeline.info, ks="ks, kd per point: eq. 6 fitted to the point's samples "

@@ -121,7 +121,7 @@ def run_whole(geometry: str | Path, specular: str | Path, valid: str | Path, sli
     The coverage itself (in W, eq. 12) is geometry: :class:`facetsynth.geometry.coverage.LightFootprint`
     gives it where it is used."""
     capture = RectifiedCapture.load(geometry)
-    spec, ok = NpyRows(specular), NpyRows(valid)
+    spec, ok = NpyRows(specular), capture.validity(valid)
     grid, metrics = settings.direction_grid(capture, spec, ok)
     log.info("direction grid %d x %d: %s", grid.n_theta, grid.n_phi, metrics["reason"])
     colour = _resample_points(capture, grid, spec, ok, slice(0, capture.n_points), slice_out, threads)
@@ -136,7 +136,7 @@ def run_part(geometry: str | Path, specular: str | Path, valid: str | Path, part
     """One scatter part (``scatter.tiles`` > 1): the slices of :func:`part_points` only, and a
     record (.npz: the points' specular colour) that :func:`gather` joins."""
     capture = RectifiedCapture.load(geometry)
-    spec, ok = NpyRows(specular), NpyRows(valid)
+    spec, ok = NpyRows(specular), capture.validity(valid)
     grid, _ = settings.direction_grid(capture, spec, ok)
     points = part_points(capture.n_points, part, parts, TILE_POINTS)
     colour = _resample_points(capture, grid, spec, ok, points, slice_out, threads)
@@ -149,7 +149,7 @@ def gather(geometry: str | Path, specular: str | Path, valid: str | Path, slice_
            grid_out: str | Path, metrics_out: str | Path, settings: Settings = Settings()) -> None:
     """The scatter parts joined into the unsplit outputs, bit for bit."""
     capture = RectifiedCapture.load(geometry)
-    grid, metrics = settings.direction_grid(capture, NpyRows(specular), NpyRows(valid))
+    grid, metrics = settings.direction_grid(capture, NpyRows(specular), capture.validity(valid))
     order, fitted = part_records(records)
     join_tables([slice_parts[k] for k in order], slice_out, capture.n_points)
     write_npy(colour_out, fitted["colour"].astype(np.float32))

@@ -113,8 +113,8 @@ def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threa
     against the truth (:func:`facetsynth.evaluation.separate.truth_scores`).
 
     Writes ``kd`` (EXR on the rectified grid), the specular residual (P, F, 3) in half floats
-    (:func:`~facetsynth.io.half.as_half`) and the sample validity (P, F) as memory-mappable .npy
-    (frames are streamed in; memory does not grow with the sample size).
+    (:func:`~facetsynth.io.half.as_half`) and the sample validity (P, F) as bits (P, ceil(F / 8)) uint8
+    (:class:`facetsynth.io.fileio.BitRows`), memory-mappable .npy (frames are streamed in; memory does not grow with the sample size).
     Invalid samples: saturated, a point outside the camera's view, a light held out for the self-check
     (``settings.heldout_every``), a light at or behind the point's facet, or a cast shadow (CAST_SHADOW).
     Frames are read on ``threads`` threads. ``outputs.normals``: the shading normals (P, 3) float32 .npy;
@@ -286,7 +286,7 @@ def eq9_residuals(capture: RectifiedCapture, settings: Settings, samples: FrameB
     (if any), re-read in each point's shading frame (with ``settings.shading_normals``: :func:`_in_shading_frame`,
     which also narrows their validity), kd = pi rho_d (:func:`facetsynth.fit.separation.diffuse_level`), the
     specular residual rho - rho_d in half floats into ``specular_out`` (P, F, 3) and the validity into
-    ``valid_out`` (P, F). Returns kd (P, 3) and which points show specular signal (P,): a residual of at least
+    ``valid_out`` (P, F) as bits (:class:`facetsynth.io.fileio.BitRows`). Returns kd (P, 3) and which points show specular signal (P,): a residual of at least
     SIGNAL_RATIO x the diffuse level."""
     n_points, n_frames = capture.n_points, len(capture.frame_files)
     points = capture.points
@@ -294,7 +294,8 @@ def eq9_residuals(capture: RectifiedCapture, settings: Settings, samples: FrameB
     signal = np.zeros(n_points, bool)
     scale = np.ones((n_frames, 3)) if factors is None else factors.rgb
     residuals = np.lib.format.open_memmap(specular_out, mode="w+", dtype=HALF, shape=(n_points, n_frames, 3))
-    valid = np.lib.format.open_memmap(valid_out, mode="w+", dtype=bool, shape=(n_points, n_frames))
+    valid = np.lib.format.open_memmap(valid_out, mode="w+", dtype=np.uint8,      # as bits: io.fileio.BitRows
+                                      shape=(n_points, -(-n_frames // 8)))
 
     def separate_tile(tile: slice) -> None:
         rho_tile, ok = samples.rows(tile)
@@ -303,7 +304,7 @@ def eq9_residuals(capture: RectifiedCapture, settings: Settings, samples: FrameB
         cos = np.einsum("pfk,pk->pf", wi, normals[tile])
         if settings.shading_normals:
             rho_tile, ok = _in_shading_frame(rho_tile, wi, cos, albedo[tile], ok)
-        valid[tile] = ok
+        valid[tile] = np.packbits(ok, axis=1)
         radiance = rho_tile * (np.clip(cos, 0, None) / r2)[..., None] * (capture.light_intensities * scale)[None]
         rho_d = diffuse_level(rho_tile, radiance, ok, settings.threshold, settings.lowest)
         kd[tile] = np.pi * rho_d
