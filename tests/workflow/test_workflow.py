@@ -16,6 +16,7 @@ from facetsynth.evaluation import selfcheck
 from facetsynth.io import tables
 from facetsynth.io.fileio import read_rgb, write_exr
 from facetsynth.stages.common import RectifiedCapture
+from facetsynth.geometry.plane import PlaneGrid
 from facetsynth.models.svbrdf import SVBRDF
 from facetsynth.evaluation.partial_ndf import variant_errors
 from facetsynth.evaluation.truth import truth_of
@@ -63,12 +64,21 @@ def scored(workdir: Path, sample: str, stage: str) -> dict:
 
 
 def rectify_scores(manifest: Path, folder: Path) -> dict:
-    """Rule score_rectify's scores of rectify's output in ``folder`` (:func:`conftest.rectify_into`)."""
+    """Rule score_rectify's scores of rectify's output in ``folder`` (:func:`conftest.rectify_into`): the frames
+    it scores warped again as rectify warped them, and read from rectify's frames, the same to float24's rounding."""
     from facetsynth.stages import score_rectify
-    score_rectify.run(score_rectify.Inputs(manifest=manifest, geometry=folder / "geometry.json",
-                                           frames=folder / "frames"),
+    from facetsynth.evaluation.rectify import truth_scores
+    from facetsynth.capture import manifest as manifests
+    score_rectify.run(score_rectify.Inputs(manifest=manifest, geometry=folder / "geometry.json"),
                       score_rectify.Outputs(scores=folder / "truth.json"))
-    return json.loads((folder / "truth.json").read_text())
+    scores = json.loads((folder / "truth.json").read_text())
+    capture, geometry = manifests.load(manifest), json.loads((folder / "geometry.json").read_text())
+    written = truth_scores(capture, manifests.camera(capture), PlaneGrid.from_dict(geometry["grid"]),
+                           np.asarray(geometry["visible"], bool), lambda q: read_rgb(folder / f"frames/{q:04d}.exr"))
+    assert written["markers_found"] == scores["markers_found"]
+    for key in ("registration_error_px", "registration_error_px_max", "radiance_median_rel_error"):
+        assert written[key] == pytest.approx(scores[key], rel=1e-3, abs=1e-5), key
+    return scores
 
 
 def test_noise_free_demo_meets_the_accuracy_targets(demo_run):

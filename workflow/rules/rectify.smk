@@ -6,8 +6,8 @@ rule rectify:
         frames="results/{sample}/hdr/frames",
         manifest="results/{sample}/hdr/manifest.json",
     output:
-        # read by separate and score_rectify alone: deleted once they have them (--notemp keeps them; a forced
-        # separate runs rectify again). At 800^2 x 480 they are 1.9 of the 10.2 GB rectify..refine leave on disk
+        # read by separate alone: deleted once it has them (--notemp keeps them; a forced separate runs rectify
+        # again). At 800^2 x 480 they were 1.9 of the 10.2 GB rectify..refine left on disk
         frames=temp(directory("results/{sample}/rectify/frames")),
         geometry="results/{sample}/rectify/geometry.json",
         metrics="results/{sample}/rectify/metrics.json",
@@ -27,9 +27,9 @@ rule rectify:
 
 rule score_rectify:  # a virtual sample's registration and rectified radiance against its truth, beside the fit
     input:
+        frames="results/{sample}/hdr/frames",  # warped again, as rectify does, for the frames it scores
         manifest="results/{sample}/hdr/manifest.json",
         geometry="results/{sample}/rectify/geometry.json",
-        frames="results/{sample}/rectify/frames",
     output:
         scores="results/{sample}/truth/rectify.json",
     log:
@@ -39,5 +39,7 @@ rule score_rectify:  # a virtual sample's registration and rectified radiance ag
     threads: 1
     resources:
         mem_mb=1000,  # demo, 168^2 points x 1360 frames (64 of them scored): 210 MB peak, 6.9 s
+    params:
+        filter=config["rectify"]["filter"],
     script:
         "../scripts/score_rectify.py"

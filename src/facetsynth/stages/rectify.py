@@ -90,15 +90,14 @@ def warp_frames(capture: dict, camera: Camera, grid: PlaneGrid, filtername: str,
     whole (:func:`facetsynth.io.fileio.atomic_dir`: an interrupted run resumes, skipping the frames already
     warped); returns each frame's geometry entry (its file, relative to the geometry's folder, and light)."""
     key = {"hdr": file_key(manifest_path), "grid": grid.to_dict(), "filter": filtername, "weights": "sample pixels"}
-    on_sample = sample_pixels(camera, capture["sample"]["width"], capture["sample"]["height"]).astype(np.float32)
+    warp = FrameWarp(capture, camera, grid, filtername)
     with atomic_dir(frames_dir, key) as staging:
 
         def rectify_frames(batch: list[int]) -> None:
             todo = [q for q in batch if not (staging / f"{q:04d}.exr").exists()]   # the others: before an interruption
             if not todo:
                 return
-            images = [np.dstack(read_frame(capture["frames"][q]["exposures"][0]["file"])) for q in todo]
-            warped, seen = warp_samples(images, on_sample, camera, grid, filtername)
+            warped, seen = warp(todo)
             for q, cells in zip(todo, warped):
                 invalid = (cells[..., 3] > 0) | ~seen
                 write_exr(staging / f"{q:04d}.exr", {"RGB": cells[..., :3], "saturated": invalid.astype(np.float32)},
@@ -109,6 +108,23 @@ def warp_frames(capture: dict, camera: Camera, grid: PlaneGrid, filtername: str,
                    threads, "rectify", unit="batch")
     return [{"file": f"{frames_dir.name}/{q:04d}.exr", "light": frame["light"]}
             for q, frame in enumerate(capture["frames"])]
+
+
+class FrameWarp:
+    """HDR frames of ``capture`` (hdr's manifest) warped onto ``grid`` from the pixels that see the sample alone
+    (:func:`facetsynth.capture.rectify.warp_samples`, OpenImageIO filter ``filtername``): what rectify writes,
+    and what rule ``score_rectify`` scores without rectify's frames (deleted once separate has them)."""
+
+    def __init__(self, capture: dict, camera: Camera, grid: PlaneGrid, filtername: str):
+        self.capture, self.camera, self.grid, self.filtername = capture, camera, grid, filtername
+        self.on_sample = sample_pixels(camera, capture["sample"]["width"],
+                                       capture["sample"]["height"]).astype(np.float32)
+
+    def __call__(self, frames: list[int]) -> tuple[list[np.ndarray], np.ndarray]:
+        """The frames ``frames`` (indices) in one warp: each (rows, cols, 4) R, G, B and the warped ``saturated``
+        mask, and which cells saw a pixel of the sample (rows, cols); every frame's cells bitwise its own warp's."""
+        images = [np.dstack(read_frame(self.capture["frames"][q]["exposures"][0]["file"])) for q in frames]
+        return warp_samples(images, self.on_sample, self.camera, self.grid, self.filtername)
 
 
 def write_geometry(capture: dict, camera: Camera, grid: PlaneGrid, visible: np.ndarray, frames: list[dict],
