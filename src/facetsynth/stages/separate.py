@@ -114,7 +114,8 @@ def run(inputs: Inputs, outputs: Outputs, settings: Settings = Settings(), threa
 
     Writes ``kd`` (EXR on the rectified grid), the specular residual (P, F, 3) in half floats
     (:func:`~facetsynth.io.half.as_half`) and the sample validity (P, F) as bits (P, ceil(F / 8)) uint8
-    (:class:`facetsynth.io.fileio.BitRows`), memory-mappable .npy (frames are streamed in; memory does not grow with the sample size).
+    (:class:`facetsynth.io.fileio.BitRows`), memory-mappable .npy (frames are streamed in; memory does not grow
+    with the sample size).
     Invalid samples: saturated, a point outside the camera's view, a light held out for the self-check
     (``settings.heldout_every``), a light at or behind the point's facet, or a cast shadow (CAST_SHADOW).
     Frames are read on ``threads`` threads. ``outputs.normals``: the shading normals (P, 3) float32 .npy;
@@ -286,8 +287,8 @@ def eq9_residuals(capture: RectifiedCapture, settings: Settings, samples: FrameB
     (if any), re-read in each point's shading frame (with ``settings.shading_normals``: :func:`_in_shading_frame`,
     which also narrows their validity), kd = pi rho_d (:func:`facetsynth.fit.separation.diffuse_level`), the
     specular residual rho - rho_d in half floats into ``specular_out`` (P, F, 3) and the validity into
-    ``valid_out`` (P, F) as bits (:class:`facetsynth.io.fileio.BitRows`). Returns kd (P, 3) and which points show specular signal (P,): a residual of at least
-    SIGNAL_RATIO x the diffuse level."""
+    ``valid_out`` (P, F) as bits (:class:`facetsynth.io.fileio.BitRows`). Returns kd (P, 3) and which points show
+    specular signal (P,): a residual of at least SIGNAL_RATIO x the diffuse level."""
     n_points, n_frames = capture.n_points, len(capture.frame_files)
     points = capture.points
     kd = np.zeros((n_points, 3))
