@@ -545,13 +545,12 @@ class BitRows(NpyRows):
 
     def __init__(self, path: PathLike, count: int, rows: int | None = None, what: str = "bit table"):
         super().__init__(path)
-        self.packed = self.dtype == np.uint8
-        width = -(-count // 8) if self.packed else count
-        if (len(self.shape) != 2 or self.dtype not in (np.uint8, np.bool_) or self.shape[1] != width
-                or rows is not None and self.shape[0] != rows):
+        self.packed, nbytes = self.dtype == np.uint8, -(-count // 8)
+        if (len(self.shape) != 2 or self.dtype not in (np.uint8, np.bool_)
+                or self.shape[1] != (nbytes if self.packed else count) or rows is not None and self.shape[0] != rows):
+            n = "P" if rows is None else rows
             raise InputError(self.path, f"{what}: a {self.dtype} tensor of shape {self.shape}, expected "
-                                        f"({rows if rows is not None else 'P'}, {-(-count // 8)}) uint8 bits "
-                                        f"or ({rows if rows is not None else 'P'}, {count}) bool")
+                                        f"({n}, {nbytes}) uint8 bits or ({n}, {count}) bool")
         self.shape, self.dtype = (self.shape[0], count), np.dtype(bool)
 
     def __getitem__(self, index) -> np.ndarray:
